@@ -1,0 +1,45 @@
+# eventrecon — the two commands: `make train` and `make test` (both install on their own).
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+PIP    := $(PY) -m pip
+STAMP  := $(VENV)/.installed
+ARGS   ?=
+
+.PHONY: install train test test-all lint tensorboard bench tables clean
+
+install: $(STAMP)
+
+# torch is installed first and pinned (the CPU wheel); then the project and its
+# test extras; lpips last with --no-deps (it would pull torchvision).
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PIP) install -q --upgrade pip
+	$(PIP) install -q torch==2.13.0
+	$(PIP) install -q -e ".[test]"
+	$(PIP) install -q --no-deps lpips==0.1.4
+	touch $(STAMP)
+
+train: install
+	$(PY) train.py $(ARGS)
+
+test: install
+	$(PY) -m pytest -m "not slow" -q $(ARGS)
+
+test-all: install
+	$(PY) -m pytest -q $(ARGS)
+
+lint: install
+	$(PY) -m ruff check src baselines tests train.py || $(PIP) install -q ruff && $(PY) -m ruff check src baselines tests train.py
+
+tensorboard: install
+	$(VENV)/bin/tensorboard --logdir outputs --logdir_spec "" 2>/dev/null || $(VENV)/bin/tensorboard --logdir outputs
+
+bench: install
+	$(PY) -m benchmarks $(ARGS)
+
+tables: install
+	$(PY) -m eventrecon.report multirun outputs $(ARGS)
+
+clean:
+	rm -rf outputs multirun lightning_logs .pytest_cache

@@ -1,0 +1,354 @@
+"""Pinhole cameras with OpenCV lens distortion, rays, projection and rigs.
+
+Conventions (the published dataset's):
+
+- camera axes are OpenCV's: x right, y down, z forward (the viewing direction);
+- ``c2w`` is the 4×4 camera-to-world matrix, world units normalised so the subject
+  lies in the unit sphere;
+- pixel ``(u, v)`` = (column, row); integer coordinates are pixel *centres*
+  (OpenCV), so pixel ``i`` covers ``[i - 0.5, i + 0.5)``;
+- distortion ``dist = (k1, k2, p1, p2, k3)`` acts on normalised coordinates
+  ``(x, y) = (X/Z, Y/Z)``:
+
+  .. math::
+     r^2 = x^2 + y^2,\\quad
+     x_d = x(1 + k_1 r^2 + k_2 r^4 + k_3 r^6) + 2 p_1 x y + p_2 (r^2 + 2x^2),\\\\
+     y_d = y(1 + k_1 r^2 + k_2 r^4 + k_3 r^6) + p_1 (r^2 + 2y^2) + 2 p_2 x y,
+
+  and ``u = fx x_d + cx``, ``v = fy y_d + cy``.
+
+Undistortion inverts that map by vectorised Newton iterations with the analytic 2×2
+Jacobian (all pixels at once, no per-pixel solver loop).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from eventrecon.errors import InputError
+
+__all__ = [
+    "Cameras",
+    "distort",
+    "undistort",
+    "look_at",
+    "ring_rig",
+    "cameras_from_camdict",
+    "cameras_to_camdict",
+]
+
+
+def distort(xy: Tensor, dist: Tensor) -> Tensor:
+    """Apply OpenCV distortion to normalised coordinates.
+
+    Args:
+        xy: ``[..., 2]`` undistorted normalised coordinates ``(X/Z, Y/Z)``.
+        dist: ``[..., 5]`` (broadcastable) coefficients ``(k1, k2, p1, p2, k3)``.
+
+    Returns:
+        ``[..., 2]`` distorted normalised coordinates (formula in the module docstring).
+
+    >>> distort(torch.tensor([[0.5, 0.0]]), torch.tensor([0.1, 0.0, 0.0, 0.0, 0.0]))
+    tensor([[0.5125, 0.0000]])
+    """
+    x, y = xy[..., 0], xy[..., 1]
+    k1, k2, p1, p2, k3 = (dist[..., i] for i in range(5))
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return torch.stack([xd, yd], dim=-1)
+
+
+def _distort_jacobian(xy: Tensor, dist: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Entries ``(a, b, c, d)`` of ``J = [[a, b], [c, d]] = ∂(xd, yd)/∂(x, y)``."""
+    x, y = xy[..., 0], xy[..., 1]
+    k1, k2, p1, p2, k3 = (dist[..., i] for i in range(5))
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    dradial_dr2 = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    a = radial + 2 * x * x * dradial_dr2 + 2 * p1 * y + 6 * p2 * x
+    b = 2 * x * y * dradial_dr2 + 2 * p1 * x + 2 * p2 * y
+    c = 2 * x * y * dradial_dr2 + 2 * p1 * x + 2 * p2 * y
+    d = radial + 2 * y * y * dradial_dr2 + 6 * p1 * y + 2 * p2 * x
+    return a, b, c, d
+
+
+def undistort(xy_d: Tensor, dist: Tensor, iters: int = 20, tol: float = 1e-12) -> Tensor:
+    """Invert :func:`distort` by Newton's method, vectorised over all points.
+
+    Solves ``distort(x) = xy_d`` starting from ``x = xy_d``; each step is
+    ``x ← x − J(x)^{-1} (distort(x) − xy_d)`` with the closed-form 2×2 inverse.
+    Computed in float64 whatever the input dtype, returned in the input dtype.
+
+    Args:
+        xy_d: ``[..., 2]`` distorted normalised coordinates.
+        dist: ``[..., 5]`` coefficients (broadcastable to ``xy_d[..., :1]``).
+
+    Returns:
+        ``[..., 2]`` undistorted normalised coordinates with
+        ``|distort(x) − xy_d| < tol`` wherever the map is invertible.
+
+    >>> d = torch.tensor([-0.4, 0.2, 0.001, -0.002, 0.0])
+    >>> x = torch.tensor([[0.3, -0.2]])
+    >>> torch.allclose(undistort(distort(x, d), d), x, atol=1e-9)
+    True
+    """
+    dtype = xy_d.dtype
+    target = xy_d.double()
+    dist = dist.double()
+    if not bool(dist.abs().gt(0).any()):
+        return xy_d.clone()
+    x = target.clone()
+    for _ in range(iters):
+        res = distort(x, dist) - target
+        if float(res.abs().max()) < tol:
+            break
+        a, b, c, d = _distort_jacobian(x, dist)
+        det = a * d - b * c
+        det = torch.where(det.abs() < 1e-12, torch.full_like(det, 1e-12), det)
+        dx = (d * res[..., 0] - b * res[..., 1]) / det
+        dy = (-c * res[..., 0] + a * res[..., 1]) / det
+        x = x - torch.stack([dx, dy], dim=-1)
+    return x.to(dtype)
+
+
+@dataclass
+class Cameras:
+    """A set of ``V`` pinhole cameras sharing one image size.
+
+    Attributes:
+        K: ``[V, 3, 3]`` intrinsics (float64).
+        dist: ``[V, 5]`` OpenCV distortion ``(k1, k2, p1, p2, k3)``.
+        c2w: ``[V, 4, 4]`` camera-to-world, OpenCV axes.
+        width, height: image size in pixels.
+        names: one name per view (file stem in the dataset layout).
+    """
+
+    K: Tensor
+    dist: Tensor
+    c2w: Tensor
+    width: int
+    height: int
+    names: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.K = torch.as_tensor(self.K, dtype=torch.float64)
+        self.dist = torch.as_tensor(self.dist, dtype=torch.float64)
+        self.c2w = torch.as_tensor(self.c2w, dtype=torch.float64)
+        v = self.K.shape[0]
+        if self.K.shape != (v, 3, 3) or self.dist.shape != (v, 5) or self.c2w.shape != (v, 4, 4):
+            raise InputError(
+                "cameras", "K/dist/c2w", "shapes [V,3,3], [V,5], [V,4,4]",
+                f"{tuple(self.K.shape)}, {tuple(self.dist.shape)}, {tuple(self.c2w.shape)}",
+            )
+        if not self.names:
+            self.names = [f"{i:02d}" for i in range(v)]
+
+    def __len__(self) -> int:
+        return int(self.K.shape[0])
+
+    def select(self, idx: Sequence[int]) -> "Cameras":
+        """The cameras at positions ``idx`` (in that order)."""
+        ii = torch.as_tensor(list(idx), dtype=torch.long)
+        return Cameras(self.K[ii], self.dist[ii], self.c2w[ii], self.width, self.height,
+                       [self.names[i] for i in ii.tolist()])
+
+    @property
+    def centers(self) -> Tensor:
+        """``[V, 3]`` camera centres in world coordinates."""
+        return self.c2w[:, :3, 3]
+
+    def pixel_directions(self, view: Tensor, uv: Tensor) -> Tensor:
+        """Camera-frame ray directions ``(x, y, 1)`` through pixel positions.
+
+        Args:
+            view: ``[N]`` long, camera index per point.
+            uv: ``[N, 2]`` pixel coordinates (column, row), possibly fractional.
+
+        Returns:
+            ``[N, 3]`` float64 directions in camera axes with unit z (undistorted).
+        """
+        K = self.K[view]
+        xd = (uv[:, 0].double() - K[:, 0, 2]) / K[:, 0, 0]
+        yd = (uv[:, 1].double() - K[:, 1, 2]) / K[:, 1, 1]
+        xy = undistort(torch.stack([xd, yd], -1), self.dist[view])
+        return torch.cat([xy, torch.ones_like(xy[:, :1])], dim=-1)
+
+    def rays(self, view: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]:
+        """World-space rays through pixel positions.
+
+        Args:
+            view: ``[N]`` long camera indices.
+            uv: ``[N, 2]`` pixel coordinates.
+
+        Returns:
+            ``(origins [N, 3], directions [N, 3])`` float32, directions of unit length,
+            so the ray parameter is metric distance from the camera centre.
+        """
+        d_cam = self.pixel_directions(view, uv)
+        R = self.c2w[view, :3, :3]
+        d = torch.einsum("nij,nj->ni", R, d_cam)
+        d = d / d.norm(dim=-1, keepdim=True)
+        o = self.c2w[view, :3, 3]
+        return o.float(), d.float()
+
+    def pixel_grid(self) -> Tensor:
+        """``[H*W, 2]`` integer pixel centres (u, v) in row-major order."""
+        v, u = torch.meshgrid(torch.arange(self.height), torch.arange(self.width), indexing="ij")
+        return torch.stack([u.reshape(-1), v.reshape(-1)], dim=-1).double()
+
+    def image_rays(self, view: int) -> tuple[Tensor, Tensor]:
+        """All ``H*W`` rays of one view, row-major: ``([H*W, 3], [H*W, 3])``."""
+        uv = self.pixel_grid()
+        return self.rays(torch.full((uv.shape[0],), view, dtype=torch.long), uv)
+
+    def project(self, xyz: Tensor, view: Tensor) -> tuple[Tensor, Tensor]:
+        """Project world points into their cameras (with distortion).
+
+        Args:
+            xyz: ``[N, 3]`` world points.
+            view: ``[N]`` long camera index per point.
+
+        Returns:
+            ``(uv [N, 2], depth [N])`` pixel coordinates and camera-frame z, float64.
+        """
+        w2c = torch.linalg.inv(self.c2w[view])
+        p = torch.einsum("nij,nj->ni", w2c[:, :3, :3], xyz.double()) + w2c[:, :3, 3]
+        z = p[:, 2]
+        xy = distort(p[:, :2] / z[:, None], self.dist[view])
+        K = self.K[view]
+        u = K[:, 0, 0] * xy[:, 0] + K[:, 0, 1] * xy[:, 1] + K[:, 0, 2]
+        v = K[:, 1, 1] * xy[:, 1] + K[:, 1, 2]
+        return torch.stack([u, v], -1), z
+
+
+def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
+    """Camera-to-world matrix (OpenCV axes) of a camera at ``eye`` looking at ``target``.
+
+    ``z = normalize(target − eye)``, ``x = normalize(z × up)`` (so ``up`` points to −y
+    in the image), ``y = z × x``.
+
+    Args:
+        eye, target, up: ``[3]`` vectors.
+
+    Returns:
+        ``[4, 4]`` float64 c2w.
+    """
+    eye, target, up = (torch.as_tensor(a, dtype=torch.float64) for a in (eye, target, up))
+    z = target - eye
+    z = z / z.norm()
+    x = torch.linalg.cross(z, up)
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    m = torch.eye(4, dtype=torch.float64)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, y, z, eye
+    return m
+
+
+def ring_rig(
+    n_views: int,
+    width: int,
+    height: int,
+    radius: float = 2.5,
+    elevation_deg: float = 15.0,
+    fov_deg: float = 40.0,
+    target: Sequence[float] = (0.0, -0.25, 0.0),
+    azimuth_offset_deg: float = 0.0,
+    dist: Sequence[float] = (0.0, 0.0, 0.0, 0.0, 0.0),
+    names: Sequence[str] | None = None,
+) -> Cameras:
+    """``n_views`` cameras evenly on a horizontal ring, all looking at ``target``.
+
+    World up is −y (OpenCV-style world, as in the published data: the clipping cylinder's
+    axis is y with the floor at larger y). Camera ``i`` sits at azimuth
+    ``azimuth_offset + 360°·i/n`` around the y axis, ``radius`` from ``target`` and
+    ``elevation_deg`` above it; focal length from the horizontal field of view.
+
+    Returns:
+        :class:`Cameras` with ``V = n_views``.
+    """
+    tgt = torch.tensor(target, dtype=torch.float64)
+    up = torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64)
+    f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
+    K = torch.tensor([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]],
+                     dtype=torch.float64)
+    el = math.radians(elevation_deg)
+    c2w = []
+    for i in range(n_views):
+        az = math.radians(azimuth_offset_deg + 360.0 * i / n_views)
+        eye = tgt + radius * torch.tensor(
+            [math.cos(el) * math.sin(az), -math.sin(el), math.cos(el) * math.cos(az)],
+            dtype=torch.float64)
+        c2w.append(look_at(eye, tgt, up))
+    return Cameras(K.expand(n_views, 3, 3).clone(),
+                   torch.tensor(dist, dtype=torch.float64).expand(n_views, 5).clone(),
+                   torch.stack(c2w), width, height,
+                   list(names) if names is not None else [])
+
+
+def cameras_from_camdict(camdict: dict, source: str | Path = "camdict.json") -> Cameras:
+    """Cameras from a ``camdict.json`` mapping (sorted by image name).
+
+    Each entry: ``K`` (4×4 flattened), ``W2C`` (4×4 flattened), optional ``dist``
+    ``[k1, k2, p1, p2, k3]`` and ``img_size [W, H]`` (equal for all entries).
+    """
+    if not isinstance(camdict, dict) or not camdict:
+        raise InputError(source, "<root>", "a non-empty JSON object of per-image entries")
+    Ks, dists, c2ws, names, sizes = [], [], [], [], set()
+    for name in sorted(camdict):
+        entry = camdict[name]
+        for key in ("K", "W2C", "img_size"):
+            if key not in entry:
+                raise InputError(source, f"{name}.{key}", "a value", "missing")
+        K = torch.tensor(entry["K"], dtype=torch.float64)
+        W2C = torch.tensor(entry["W2C"], dtype=torch.float64)
+        if K.numel() != 16 or W2C.numel() != 16:
+            raise InputError(source, f"{name}.K/W2C", "16 numbers (4×4 flattened)",
+                             f"{K.numel()} and {W2C.numel()}")
+        dist = torch.tensor(entry.get("dist", [0.0] * 5), dtype=torch.float64).reshape(-1)
+        if dist.numel() < 5:
+            dist = torch.cat([dist, dist.new_zeros(5 - dist.numel())])
+        Ks.append(K.reshape(4, 4)[:3, :3])
+        dists.append(dist[:5])
+        c2ws.append(torch.linalg.inv(W2C.reshape(4, 4)))
+        names.append(Path(name).stem)
+        sizes.add(tuple(int(s) for s in entry["img_size"]))
+    if len(sizes) != 1:
+        raise InputError(source, "img_size", "the same [W, H] for every view", sorted(sizes))
+    (w, h), = sizes
+    return Cameras(torch.stack(Ks), torch.stack(dists), torch.stack(c2ws), w, h, names)
+
+
+def cameras_to_camdict(cams: Cameras, suffix: str = ".png") -> dict:
+    """Inverse of :func:`cameras_from_camdict` (keys ``<name><suffix>``)."""
+    out = {}
+    for i, name in enumerate(cams.names):
+        K4 = torch.eye(4, dtype=torch.float64)
+        K4[:3, :3] = cams.K[i]
+        out[f"{name}{suffix}"] = {
+            "K": K4.reshape(-1).tolist(),
+            "W2C": torch.linalg.inv(cams.c2w[i]).reshape(-1).tolist(),
+            "dist": cams.dist[i].tolist(),
+            "img_size": [cams.width, cams.height],
+        }
+    return out
+
+
+def load_camdict(path: str | Path) -> Cameras:
+    """Read a ``camdict.json`` file into :class:`Cameras` (clear error if malformed)."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(path, "<file>", "an existing camdict.json", "missing") from None
+    except json.JSONDecodeError as e:
+        raise InputError(path, "<json>", "valid JSON", f"parse error at line {e.lineno}") from None
+    return cameras_from_camdict(data, path)
