@@ -1,0 +1,200 @@
+"""Image quality metrics: PSNR, SSIM, LPIPS (AlexNet) and an optional colour correction.
+
+Images are ``[H, W, 3]`` (or batched ``[N, H, W, 3]``) float arrays in ``[0, 1]``,
+numpy or torch (any device). Conventions of the paper's evaluation:
+
+- PSNR ``= -10 log10(mean((pred - gt)²))`` (peak 1); ``inf`` for identical images.
+- SSIM: :func:`skimage.metrics.structural_similarity` with ``data_range=1`` and
+  ``channel_axis=-1`` (Gaussian-free 7×7 window, scikit-image defaults).
+- LPIPS: :class:`eventrecon.lpips_alex.LPIPSAlex` on inputs mapped to ``[-1, 1]``
+  (``2x - 1``). When the AlexNet weights cannot be had, LPIPS is *unavailable*:
+  :func:`evaluate_images` returns ``lpips=None`` and a one-line ``lpips_note``, never 0.
+- Colour correction (off by default, as in the earlier EventNeRF evaluation): per image
+  and channel, fit ``log(gt + eps) ≈ a·log(pred + eps) + b`` by least squares and
+  replace ``pred`` by ``exp(a·log(pred + eps) + b) - eps`` clipped to ``[0, 1]``.
+
+>>> import numpy as np
+>>> gt = np.full((8, 8, 3), 0.5); pred = gt + 0.1
+>>> round(psnr(pred, gt), 6)
+20.0
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+import numpy as np
+import torch
+from skimage.metrics import structural_similarity
+
+from eventrecon.errors import InputError
+from eventrecon.lpips_alex import LPIPSUnavailable, load_lpips_alex
+
+log = logging.getLogger(__name__)
+
+ArrayLike = np.ndarray | torch.Tensor
+_WARNED: set[str] = set()
+
+
+def _as_numpy(img: ArrayLike) -> np.ndarray:
+    if isinstance(img, torch.Tensor):
+        return img.detach().to("cpu", torch.float64).numpy()
+    return np.asarray(img, dtype=np.float64)
+
+
+def _batch(img: ArrayLike, name: str) -> np.ndarray:
+    """``[H,W,3]`` or ``[N,H,W,3]`` → float64 ``[N,H,W,3]``; otherwise :class:`InputError`."""
+    arr = _as_numpy(img)
+    if arr.ndim == 3:
+        arr = arr[None]
+    if arr.ndim != 4 or arr.shape[-1] != 3:
+        raise InputError(f"metrics({name})", "shape", "[H, W, 3] or [N, H, W, 3]", arr.shape)
+    return arr
+
+
+def _pair(pred: ArrayLike, gt: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+    p, g = _batch(pred, "pred"), _batch(gt, "gt")
+    if p.shape != g.shape:
+        raise InputError("metrics(pred)", "shape", f"equal to gt's {g.shape}", p.shape)
+    return p, g
+
+
+def psnr(pred: ArrayLike, gt: ArrayLike) -> float:
+    """PSNR in dB of one ``[H,W,3]`` image (peak 1): ``-10·log10(MSE)``; ``inf`` if equal.
+
+    A batch ``[N,H,W,3]`` gives the mean of the per-image PSNRs.
+
+    >>> import numpy as np
+    >>> round(psnr(np.zeros((4, 4, 3)), np.full((4, 4, 3), 0.01)), 6)
+    40.0
+    """
+    p, g = _pair(pred, gt)
+    mse = ((p - g) ** 2).reshape(len(p), -1).mean(axis=1)
+    with np.errstate(divide="ignore"):
+        vals = -10.0 * np.log10(mse)
+    return float(np.mean(vals))
+
+
+def ssim(pred: ArrayLike, gt: ArrayLike) -> float:
+    """SSIM (scikit-image, ``data_range=1``, ``channel_axis=-1``); mean over a batch.
+
+    >>> import numpy as np
+    >>> ssim(np.full((16, 16, 3), 0.3), np.full((16, 16, 3), 0.3))
+    1.0
+    """
+    p, g = _pair(pred, gt)
+    vals = [
+        structural_similarity(a, b, data_range=1.0, channel_axis=-1) for a, b in zip(p, g)
+    ]
+    return float(np.mean(vals))
+
+
+def lpips(
+    pred: ArrayLike, gt: ArrayLike, device: torch.device | str | None = None
+) -> float:
+    """LPIPS-Alex v0.1 distance (lower is better); mean over a batch.
+
+    Inputs in ``[0, 1]`` are mapped to ``[-1, 1]`` before the network. Raises
+    :class:`eventrecon.lpips_alex.LPIPSUnavailable` when the weights cannot be had.
+    ``device`` defaults to the device of ``pred`` when it is a tensor, else CPU.
+    """
+    if device is None:
+        device = pred.device if isinstance(pred, torch.Tensor) else "cpu"
+    p, g = _pair(pred, gt)
+    net = load_lpips_alex(device)
+    vals = []
+    with torch.no_grad():
+        for a, b in zip(p, g):
+            ta = torch.as_tensor(a, dtype=torch.float32, device=device).permute(2, 0, 1)[None]
+            tb = torch.as_tensor(b, dtype=torch.float32, device=device).permute(2, 0, 1)[None]
+            vals.append(float(net(2 * ta - 1, 2 * tb - 1)[0]))
+    return float(np.mean(vals))
+
+
+def color_correct(pred: ArrayLike, gt: ArrayLike, eps: float = 1e-2) -> np.ndarray:
+    """Per-image, per-channel affine fit in log space of ``pred`` to ``gt``.
+
+    For each image and channel ``c``: ``(a, b) = argmin Σ (a·log(pred+eps) + b
+    - log(gt+eps))²`` (ordinary least squares over the pixels), then
+    ``pred' = clip(exp(a·log(pred+eps) + b) - eps, 0, 1)``. A constant channel
+    (no variance) gets ``a = 0`` and ``b`` = the mean of ``log(gt+eps)``.
+
+    Returns float64 ``[N,H,W,3]`` (or ``[H,W,3]`` for a single image input).
+
+    >>> import numpy as np
+    >>> gt = np.linspace(0.1, 0.9, 48).reshape(4, 4, 3)
+    >>> pred = np.exp(0.5 * np.log(gt + 1e-2)) - 1e-2  # log-affine distortion of gt
+    >>> bool(np.abs(color_correct(pred, gt) - gt).max() < 1e-9)
+    True
+    """
+    single = _as_numpy(pred).ndim == 3
+    p, g = _pair(pred, gt)
+    lp, lg = np.log(np.clip(p, 0, None) + eps), np.log(np.clip(g, 0, None) + eps)
+    out = np.empty_like(p)
+    for n in range(len(p)):
+        for c in range(3):
+            x, y = lp[n, ..., c].ravel(), lg[n, ..., c].ravel()
+            xc = x - x.mean()
+            var = float(xc @ xc)
+            a = float(xc @ (y - y.mean())) / var if var > 0 else 0.0
+            b = y.mean() - a * x.mean()
+            out[n, ..., c] = np.exp(a * lp[n, ..., c] + b) - eps
+    out = np.clip(out, 0.0, 1.0)
+    return out[0] if single else out
+
+
+def evaluate_images(
+    preds: ArrayLike,
+    gts: ArrayLike,
+    lpips: bool = True,
+    color_correct: bool = False,
+    device: torch.device | str | None = None,
+) -> dict[str, Any]:
+    """Mean PSNR / SSIM / LPIPS over frames ``[N,H,W,3]`` (or one ``[H,W,3]`` image).
+
+    Returns ``{"psnr", "ssim", "lpips", "lpips_note", "n_frames", "color_corrected"}``.
+    ``lpips`` is ``None`` (with a one-line ``lpips_note`` and a logged warning) when the
+    network's weights cannot be had or ``lpips=False`` was asked; never a made-up 0
+    (the warning is logged once per distinct reason).
+    With ``color_correct=True`` every prediction is first fitted to its ground truth
+    (:func:`color_correct`); the metrics then measure structure, not tone.
+
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> gt = rng.random((2, 16, 16, 3)); out = evaluate_images(gt, gt, lpips=False)
+    >>> out["psnr"], out["ssim"], out["lpips"], out["lpips_note"]
+    (inf, 1.0, None, 'LPIPS not requested')
+    """
+    p, g = _pair(preds, gts)
+    if device is None and isinstance(preds, torch.Tensor):
+        device = preds.device
+    if color_correct:
+        p = _color_correct_fn(p, g)
+    result: dict[str, Any] = {
+        "psnr": psnr(p, g),
+        "ssim": ssim(p, g),
+        "lpips": None,
+        "lpips_note": "LPIPS not requested",
+        "n_frames": int(len(p)),
+        "color_corrected": bool(color_correct),
+    }
+    if lpips:
+        try:
+            result["lpips"] = _lpips_fn(p, g, device=device)
+            result["lpips_note"] = None
+        except LPIPSUnavailable as exc:
+            note = str(exc).splitlines()[0] if str(exc) else "LPIPS unavailable"
+            if note not in _WARNED:  # once per reason, not at every evaluation
+                _WARNED.add(note)
+                log.warning("LPIPS unavailable: %s", note)
+            result["lpips_note"] = note
+    if math.isinf(result["psnr"]):
+        log.debug("PSNR is infinite: predictions equal the ground truth")
+    return result
+
+
+# Keyword arguments of evaluate_images shadow the functions of the same name.
+_color_correct_fn = color_correct
+_lpips_fn = lpips

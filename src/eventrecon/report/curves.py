@@ -1,0 +1,185 @@
+"""Accuracy vs wall-clock time, per backbone: a PNG and a Markdown table.
+
+Each run's ``curve.csv`` holds held-out evaluations ``(wall_s, step, psnr, ssim, lpips,
+kind)``; ``kind = full`` rows evaluate the full held-out images, ``cheap`` rows a
+subsampled image between them. Time-to-level uses the ``full`` rows when a run has any
+(``cheap`` ones otherwise; the table's "eval" column says which) and is the first logged
+wall-clock time with ``PSNR ≥ level`` — no interpolation, so it is an upper bound on the
+true crossing time within one evaluation interval.
+
+>>> time_to_level(np.array([1.0, 2.0, 3.0]), np.array([14.0, 21.0, 26.0]), 20.0)
+2.0
+>>> time_to_level(np.array([1.0, 2.0]), np.array([14.0, 18.0]), 20.0) is None
+True
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from eventrecon.errors import InputError
+from eventrecon.report.format import DASH, fmt, markdown_table
+from eventrecon.report.runs import MODELS, Run, empty_curve, read_curve
+
+log = logging.getLogger(__name__)
+
+#: PSNR levels (dB) of the time-to-quality table.
+DEFAULT_LEVELS: tuple[float, ...] = (15.0, 20.0, 25.0, 30.0)
+_METRICS = (("psnr", "PSNR [dB] ↑"), ("ssim", "SSIM ↑"), ("lpips", "LPIPS ↓"))
+
+
+def time_to_level(wall_s: np.ndarray, psnr: np.ndarray, level: float) -> float | None:
+    """First ``wall_s[i]`` (in time order) with ``psnr[i] ≥ level``; ``None`` if never.
+
+    ``wall_s, psnr``: ``[T]``; NaN PSNRs are ignored.
+    """
+    order = np.argsort(wall_s, kind="stable")
+    w, p = np.asarray(wall_s, float)[order], np.asarray(psnr, float)[order]
+    hit = np.flatnonzero(np.nan_to_num(p, nan=-np.inf) >= level)
+    return float(w[hit[0]]) if hit.size else None
+
+
+@dataclass
+class CurveSummary:
+    """Time-to-quality figures of one run (``times[level]`` in seconds or ``None``)."""
+
+    run: Run
+    kind: str  # "full", "cheap" or "none": which curve rows the figures use
+    times: dict[float, float | None]
+    best_psnr: float | None
+
+
+def _curve(run: Run) -> dict[str, np.ndarray]:
+    """The run's curve; a malformed ``curve.csv`` is logged and treated as empty."""
+    try:
+        return read_curve(run.path)
+    except InputError as exc:
+        log.warning("ignored curve: %s", exc)
+        return empty_curve()
+
+
+def summarize(run: Run, levels: Sequence[float] = DEFAULT_LEVELS) -> CurveSummary:
+    """Time to each PSNR level and the best logged PSNR of ``run``'s curve."""
+    c = _curve(run)
+    full = c["kind"] == "full"
+    sel = full if full.any() else np.ones(len(c["kind"]), bool)
+    kind = "none" if not len(c["kind"]) else ("full" if full.any() else "cheap")
+    w, p = c["wall_s"][sel], c["psnr"][sel]
+    finite = p[np.isfinite(p)]
+    return CurveSummary(
+        run=run,
+        kind=kind,
+        times={lv: time_to_level(w, p, lv) for lv in levels},
+        best_psnr=float(finite.max()) if finite.size else None,
+    )
+
+
+def _model_rank(model: str) -> int:
+    return MODELS.index(model) if model in MODELS else len(MODELS)
+
+
+def accuracy_table(
+    summaries: Sequence[CurveSummary], levels: Sequence[float] = DEFAULT_LEVELS
+) -> str:
+    """Markdown: per run, time to each PSNR level, best / final PSNR, s/it, peak memory."""
+    header = ["Backbone", "Scene", "Loss", "eval"]
+    header += [f"t → {lv:g} dB [s]" for lv in levels]
+    header += ["best PSNR", "final PSNR", "s/it", "peak mem [MB]", "status"]
+    rows = []
+    ordered = sorted(
+        summaries, key=lambda s: (_model_rank(s.run.model), s.run.model, s.run.scene, s.run.loss)
+    )
+    for s in ordered:
+        r = s.run
+        rows.append(
+            [r.model, r.scene, r.loss, s.kind]
+            + [fmt(s.times[lv], 1) for lv in levels]
+            + [
+                fmt(s.best_psnr, 2),
+                fmt(r.metric("psnr"), 2) if r.ok else DASH,
+                fmt(r.number("sec_per_it"), 4),
+                fmt(r.number("peak_mem_mb"), 0),
+                r.status,
+            ]
+        )
+    notes = [
+        "",
+        "- t → L: first logged wall-clock time with held-out PSNR ≥ L (—: never reached); "
+        "eval = which curve rows were used (full images, or the cheap subsampled ones).",
+        "- best PSNR: maximum over the curve; final PSNR: metrics.json at the end of training.",
+    ]
+    return markdown_table(header, rows) + "\n" + "\n".join(notes) + "\n"
+
+
+def plot_accuracy_vs_time(runs: Sequence[Run], path: str | Path, loss: str | None = "full") -> Path:
+    """PSNR (and SSIM, LPIPS where logged) against wall-clock seconds; colour = backbone,
+    line style = scene; ``full`` evaluations as markers, ``cheap`` ones as a thin line.
+
+    Only runs with ``loss`` (the backbone comparison) are drawn when there are any;
+    ``loss=None`` draws every run. Writes a PNG (Agg backend) and returns its path.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    chosen = [r for r in runs if loss is None or r.loss == loss] or list(runs)
+    curves = [(r, _curve(r)) for r in chosen]
+    curves = [(r, c) for r, c in curves if len(c["wall_s"])]
+    shown = [(k, lab) for k, lab in _METRICS if any(np.isfinite(c[k]).any() for _, c in curves)]
+    shown = shown or list(_METRICS[:1])
+    fig, axes = plt.subplots(1, len(shown), figsize=(5.0 * len(shown), 4.0), squeeze=False)
+    models = sorted({r.model for r, _ in curves}, key=lambda m: (_model_rank(m), m))
+    scenes = sorted({r.scene for r, _ in curves})
+    colours = {m: plt.get_cmap("tab10")(i % 10) for i, m in enumerate(models)}
+    styles = {s: ("-", "--", ":", "-.")[i % 4] for i, s in enumerate(scenes)}
+    tmax = max((float(np.nanmax(c["wall_s"])) for _, c in curves), default=1.0)
+    positive = [c["wall_s"][c["wall_s"] > 0] for _, c in curves]
+    tmin = min((float(p.min()) for p in positive if p.size), default=1.0)
+    for ax, (key, label) in zip(axes[0], shown):
+        for r, c in curves:
+            name = r.model if len(scenes) == 1 else f"{r.model} / {r.scene}"
+            full = c["kind"] == "full"
+            col, ls = colours[r.model], styles[r.scene]
+            if (~full).any():
+                ax.plot(c["wall_s"][~full], c[key][~full], ls, color=col, alpha=0.35, lw=1)
+            if full.any():
+                ax.plot(c["wall_s"][full], c[key][full], ls, color=col, marker="o", ms=3,
+                        label=name)
+            else:
+                ax.plot([], [], ls, color=col, label=name)
+        ax.set_xlabel("wall-clock time [s]")
+        ax.set_ylabel(label)
+        if tmax / max(tmin, 1e-9) > 100:
+            ax.set_xscale("log")
+        ax.grid(alpha=0.3)
+    if not curves:
+        axes[0][0].text(0.5, 0.5, "no curve.csv found", ha="center", transform=axes[0][0].transAxes)
+    handles, labels = axes[0][0].get_legend_handles_labels()
+    uniq = dict(zip(labels, handles))
+    if uniq:
+        axes[0][0].legend(uniq.values(), uniq.keys(), fontsize=8)
+    fig.suptitle("Held-out quality vs wall-clock time (markers: full evaluations; thin: cheap)")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_accuracy_vs_time(
+    runs: Sequence[Run], out: str | Path, levels: Sequence[float] = DEFAULT_LEVELS
+) -> list[Path]:
+    """Write ``accuracy_vs_time.png`` and ``accuracy_vs_time.md`` into ``out``."""
+    out = Path(out)
+    png = plot_accuracy_vs_time(runs, out / "accuracy_vs_time.png")
+    md = out / "accuracy_vs_time.md"
+    title = "## Accuracy vs wall-clock time\n\n![accuracy vs time](accuracy_vs_time.png)\n\n"
+    md.write_text(title + accuracy_table([summarize(r, levels) for r in runs], levels))
+    return [png, md]

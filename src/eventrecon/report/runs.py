@@ -1,0 +1,227 @@
+"""Run folders: the ``metrics.json`` / ``curve.csv`` contract, reading, writing, collecting.
+
+A run folder (a Hydra job folder, e.g. ``multirun/<date>/<time>/<job>/``) holds
+
+- ``metrics.json``: ``{"scene", "model", "loss", "views", "fps", "psnr", "ssim",
+  "lpips", "lpips_note", "wall_s", "steps", "sec_per_it", "peak_mem_mb", "status",
+  "error"}`` (``model`` ∈ nerf | ngp | tensorf_cp | hexplane; ``status`` ok | failed;
+  ``lpips`` may be null with a ``lpips_note``); an optional ``"experiment"`` key
+  (e.g. ``"table3"``) says which table the run was swept for;
+- ``curve.csv``: header ``wall_s,step,psnr,ssim,lpips,kind`` with ``kind`` = ``cheap``
+  (subsampled held-out image between full evaluations) or ``full``; empty cells = NaN.
+  Without a top-level one, the segments' ``seg<k>/curve.csv`` are read in order, each
+  shifted to start where the previous one ended when its clock restarts;
+- ``.hydra/overrides.yaml``: when ``metrics.json`` has no ``experiment``, an
+  ``experiment=<name>`` override there names it.
+
+:func:`collect_runs` walks folders recursively; a malformed ``metrics.json`` is skipped
+with a one-line warning (the report of a sweep must survive one broken job).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from eventrecon.errors import InputError
+
+log = logging.getLogger(__name__)
+
+METRICS_FILE = "metrics.json"
+CURVE_FILE = "curve.csv"
+CURVE_HEADER: tuple[str, ...] = ("wall_s", "step", "psnr", "ssim", "lpips", "kind")
+REQUIRED_KEYS: tuple[str, ...] = ("scene", "model", "loss", "views", "fps", "status")
+MODELS: tuple[str, ...] = ("nerf", "ngp", "tensorf_cp", "hexplane")
+
+
+@dataclass
+class Run:
+    """One finished (or failed) run as read from its folder.
+
+    ``metric(name)`` gives ``psnr``/``ssim``/``lpips`` as a float, or ``None`` when the
+    value is absent (e.g. LPIPS unavailable). ``mtime`` orders reruns of the same cell.
+    """
+
+    path: Path
+    scene: str
+    model: str
+    loss: str
+    views: int | None  # None: "all views" (the config's null)
+    fps: float | None  # None: "every RGB frame"
+    status: str
+    record: dict[str, Any] = field(repr=False)
+    experiment: str | None = None
+    mtime: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    def metric(self, name: str) -> float | None:
+        v = self.record.get(name)
+        if v is None:
+            return None
+        v = float(v)
+        return None if math.isnan(v) else v
+
+    def number(self, name: str) -> float | None:
+        """A numeric field of ``metrics.json`` (``wall_s``, ``sec_per_it``, ...) or ``None``."""
+        return self.metric(name)
+
+
+def _experiment_from_hydra(folder: Path) -> str | None:
+    path = folder / ".hydra" / "overrides.yaml"
+    if not path.is_file():
+        return None
+    for line in path.read_text().splitlines():
+        item = line.strip().lstrip("-").strip().strip("'\"")
+        if item.startswith(("experiment=", "+experiment=")):
+            return item.split("=", 1)[1].strip() or None
+    return None
+
+
+def read_run(folder: str | Path) -> Run:
+    """Read ``<folder>/metrics.json``; :class:`InputError` on a malformed file."""
+    folder = Path(folder)
+    path = folder / METRICS_FILE
+    try:
+        rec = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(path, "(file)", "a readable JSON object", type(exc).__name__) from exc
+    if not isinstance(rec, dict):
+        raise InputError(path, "(top level)", "a JSON object", type(rec).__name__)
+    for key in REQUIRED_KEYS:
+        if key not in rec:
+            raise InputError(path, key, "present (metrics.json contract)", "missing")
+    if rec["status"] not in ("ok", "failed"):
+        raise InputError(path, "status", "'ok' or 'failed'", repr(rec["status"]))
+    try:
+        views = None if rec["views"] is None else int(rec["views"])
+        fps = None if rec["fps"] is None else float(rec["fps"])
+    except (TypeError, ValueError) as exc:
+        raise InputError(path, "views/fps", "numbers", (rec["views"], rec["fps"])) from exc
+    return Run(
+        path=folder,
+        scene=str(rec["scene"]),
+        model=str(rec["model"]),
+        loss=str(rec["loss"]),
+        views=views,
+        fps=fps,
+        status=str(rec["status"]),
+        record=rec,
+        experiment=rec.get("experiment") or _experiment_from_hydra(folder),
+        mtime=path.stat().st_mtime,
+    )
+
+
+def collect_runs(dirs: Iterable[str | Path]) -> list[Run]:
+    """All runs under ``dirs`` (recursive search for ``metrics.json``), sorted by path.
+
+    Missing folders and malformed files are logged and skipped.
+    """
+    runs: dict[Path, Run] = {}
+    for d in dirs:
+        d = Path(d)
+        if not d.exists():
+            log.warning("%s: no such folder (skipped)", d)
+            continue
+        files = [d / METRICS_FILE] if (d / METRICS_FILE).is_file() else []
+        files += sorted(d.rglob(METRICS_FILE))
+        for f in files:
+            key = f.parent.resolve()
+            if key in runs:
+                continue
+            try:
+                runs[key] = read_run(f.parent)
+            except InputError as exc:
+                log.warning("skipped run: %s", exc)
+    return sorted(runs.values(), key=lambda r: str(r.path))
+
+
+def read_curve(folder: str | Path) -> dict[str, np.ndarray]:
+    """``<folder>/curve.csv`` (or the segments' curves) as columns: float arrays
+    ``wall_s, step, psnr, ssim, lpips`` (empty cell → NaN) and a str array ``kind``,
+    sorted by ``wall_s``. Missing file → empty columns; a wrong header → :class:`InputError`.
+    """
+    folder = Path(folder)
+    top = folder / CURVE_FILE
+    paths = [top] if top.is_file() else sorted(
+        folder.glob(f"seg*/{CURVE_FILE}"), key=lambda p: (len(p.parent.name), p.parent.name)
+    )
+    cols: dict[str, list] = {k: [] for k in CURVE_HEADER}
+    for path in paths:
+        start = len(cols["wall_s"])
+        with path.open(newline="") as fh:
+            reader = csv.DictReader(fh)
+            missing = [k for k in CURVE_HEADER if k not in (reader.fieldnames or [])]
+            if missing:
+                raise InputError(path, "header", ",".join(CURVE_HEADER), reader.fieldnames)
+            for i, row in enumerate(reader, start=2):
+                for k in CURVE_HEADER[:-1]:
+                    cell = (row[k] or "").strip()
+                    try:
+                        cols[k].append(float(cell) if cell else math.nan)
+                    except ValueError as exc:
+                        raise InputError(path, f"line {i} {k}", "a number", cell) from exc
+                cols["kind"].append((row["kind"] or "full").strip())
+        seg, before = cols["wall_s"][start:], cols["wall_s"][:start]
+        if seg and before and min(seg) < max(before):  # the segment's clock restarted
+            shift = max(before)
+            cols["wall_s"][start:] = [w + shift for w in seg]
+    return _as_columns(cols)
+
+
+def empty_curve() -> dict[str, np.ndarray]:
+    """A curve with no rows (the columns of :func:`read_curve`)."""
+    return _as_columns({k: [] for k in CURVE_HEADER})
+
+
+def _as_columns(cols: dict[str, list]) -> dict[str, np.ndarray]:
+    out = {k: np.asarray(v, dtype=float) for k, v in cols.items() if k != "kind"}
+    out["kind"] = np.asarray(cols["kind"], dtype=str)
+    order = np.argsort(out["wall_s"], kind="stable")
+    return {k: v[order] for k, v in out.items()}
+
+
+def write_run(
+    folder: str | Path,
+    metrics: Mapping[str, Any],
+    curve: Iterable[Mapping[str, Any]] = (),
+) -> Path:
+    """Write ``metrics.json`` (and ``curve.csv`` from rows with the CURVE_HEADER keys).
+
+    Missing keys of the contract are written as ``null``; ``None`` curve cells as empty.
+    Returns the folder. Used by the demo sweep and by tests; training code may use it.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    keys = REQUIRED_KEYS + (
+        "psnr", "ssim", "lpips", "lpips_note", "wall_s", "steps", "sec_per_it",
+        "peak_mem_mb", "error",
+    )
+    rec = {k: metrics.get(k) for k in keys} | dict(metrics)
+    (folder / METRICS_FILE).write_text(json.dumps(rec, indent=2))
+    rows = list(curve)
+    if rows:
+        write_curve(folder / CURVE_FILE, rows)
+    return folder
+
+
+def write_curve(path: str | Path, rows: Iterable[Mapping[str, Any]]) -> Path:
+    """Write curve rows (keys of ``CURVE_HEADER``; ``None`` → empty cell) as CSV."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(CURVE_HEADER)
+        for r in rows:
+            w.writerow(["" if r.get(k) is None else r.get(k) for k in CURVE_HEADER])
+    return path

@@ -1,0 +1,230 @@
+"""Reports: Tab. 3–7 in the paper's layout beside fake runs; accuracy vs time."""
+
+from __future__ import annotations
+
+import json
+import re
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from eventrecon.report import build_report, collect_runs
+from eventrecon.report.__main__ import main
+from eventrecon.report.curves import summarize, time_to_level
+from eventrecon.report.paper import PAPER_TABLES
+from eventrecon.report.runs import write_curve, write_run
+from eventrecon.report.tables import build_table, to_latex, to_markdown
+
+SEED_TEXT = Path("/work/shared/seed/dynamic-eventnerf-supplementary.txt")
+
+
+def _metrics(scene, model="nerf", loss="full", views=5, fps=5.0, psnr=25.0, ssim=0.9,
+             lpips=0.1, status="ok", **kw):
+    return dict(scene=scene, model=model, loss=loss, views=views, fps=fps, psnr=psnr,
+                ssim=ssim, lpips=lpips, lpips_note=None if lpips is not None else "no weights",
+                wall_s=100.0, steps=1000, sec_per_it=0.1, peak_mem_mb=512.0, status=status,
+                error=None if status == "ok" else "boom", **kw)
+
+
+def _sweep(root: Path, jobs: list[dict], experiment: str | None = None) -> Path:
+    sweep = root / "multirun" / "2025-01-01" / "12-00-00"
+    for i, m in enumerate(jobs):
+        job = write_run(sweep / str(i), m)
+        if experiment:
+            (job / ".hydra").mkdir()
+            (job / ".hydra" / "overrides.yaml").write_text(
+                f"- experiment={experiment}\n- model={m['model']}\n- loss={m['loss']}\n"
+            )
+    return sweep
+
+
+def _parse_md(text: str) -> dict[str, dict[str, dict[str, str]]]:
+    """``{group title: {row label: {column header: cell}}}`` from our Markdown."""
+    groups: dict[str, dict[str, dict[str, str]]] = {}
+    title = None
+    header: list[str] = []
+    for line in text.splitlines():
+        if line.startswith("### "):
+            title, header = line[4:], []
+            groups[title] = {}
+        elif line.startswith("|") and title:
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            if not header:
+                header = cells
+            elif not set(cells[0]) <= set(":-"):
+                groups[title][cells[0]] = dict(zip(header, cells))
+    return groups
+
+
+@pytest.fixture
+def table3_sweep(tmp_path):
+    jobs = [
+        _metrics("spheres", psnr=30.0, ssim=0.93, lpips=0.08),
+        _metrics("blocks", psnr=26.0, ssim=0.89, lpips=0.12),
+        _metrics("spheres", loss="no_event", psnr=28.0, ssim=0.91, lpips=None),
+        _metrics("spheres", model="ngp", psnr=20.0, ssim=0.80, lpips=0.3, status="failed"),
+        _metrics("blocks", model="hexplane", psnr=22.5, ssim=0.85, lpips=0.25),
+        # not a Tab. 3 row (no_decay is Tab. 4 only): must be ignored
+        _metrics("spheres", loss="no_decay", psnr=99.0),
+    ]
+    return _sweep(tmp_path, jobs, "table3")
+
+
+def test_table3_layout_paper_numbers_ours_and_deltas(table3_sweep):
+    runs = collect_runs([table3_sweep.parent.parent])
+    assert len(runs) == 6 and all(r.experiment == "table3" for r in runs)
+    md = to_markdown(build_table("table3", runs))
+    groups = _parse_md(md)
+    paper = PAPER_TABLES["table3"]
+    titles = list(groups)
+    # every paper column, in order, then our extra scene, then the average
+    assert [t.split(" — ")[0] for t in titles] == [
+        "Blender", "Dress", "Spheres", "Lego", "Static Lego", "— (no paper counterpart)",
+        "Average"]
+    assert "`spheres`" in titles[2] and "`blocks`" in titles[5]
+    for title, col in zip(titles, list(paper.columns[:5]) + [None, "Average"]):
+        rows = groups[title]
+        assert list(rows) == list(paper.rows)  # every row, in the paper's order
+        for row in paper.rows:
+            for m, metric in enumerate(("PSNR↑", "SSIM↑", "LPIPS↓")):
+                want = f"{paper.value(row, col)[m]:.3f}" if col else "—"
+                assert rows[row][f"{metric} paper"] == want
+    sph, blk, avg = groups[titles[2]], groups[titles[5]], groups[titles[6]]
+    # ours and Δ where given
+    assert sph["Full Model"]["PSNR↑ ours"] == "30.000"
+    assert sph["Full Model"]["PSNR↑ Δ"] == f"{30.0 - 29.765:+.3f}" == "+0.235"
+    assert sph["Full Model"]["LPIPS↓ Δ"] == f"{0.08 - 0.081:+.3f}"
+    assert sph["w/o L_event"]["SSIM↑ ours"] == "0.910"
+    assert sph["w/o L_event"]["LPIPS↓ ours"] == "n/a"
+    assert sph["w/o L_event"]["LPIPS↓ Δ"] == "—"
+    assert sph["NGP"]["PSNR↑ ours"] == "failed" and sph["NGP"]["PSNR↑ Δ"] == "—"
+    assert sph["TensoRF-CP"]["PSNR↑ ours"] == "—"
+    assert blk["HexPlane"]["PSNR↑ ours"] == "22.500" and blk["HexPlane"]["PSNR↑ Δ"] == "—"
+    assert all(groups[titles[0]][r]["PSNR↑ ours"] == "—" for r in paper.rows)
+    assert "99.000" not in md
+    # averages over our columns with values, Δ against the paper's average
+    assert avg["Full Model"]["PSNR↑ ours"] == "28.000"  # (30 + 26) / 2
+    assert avg["Full Model"]["PSNR↑ Δ"] == f"{28.0 - 27.097:+.3f}"
+    assert avg["Full Model"]["SSIM↑ ours"] == "0.910"
+    assert avg["HexPlane"]["PSNR↑ ours"] == "22.500"  # only `blocks` has a value
+    assert avg["w/o L_event"]["LPIPS↓ ours"] == "n/a"  # no LPIPS anywhere in that row
+    assert avg["NGP"]["PSNR↑ ours"] == "—"  # failed runs are not averaged
+    assert "mean over the columns with a value" in md
+    tex = to_latex(build_table("table3", runs))
+    assert tex.count(r"\begin{tabular}") == 7 and "29.765 & 30.000 & +0.235" in tex
+
+
+def test_paper_average_column_is_mean_of_scenes():
+    p = PAPER_TABLES["table3"]
+    for row in p.rows:
+        mean = np.mean([p.value(row, c) for c in p.columns[:5]], axis=0)
+        assert np.abs(mean - np.array(p.value(row, "Average"))).max() <= 1.5e-3, row
+
+
+@pytest.mark.skipif(not SEED_TEXT.is_file(), reason="supplementary text not available")
+def test_paper_numbers_match_the_supplementary_text():
+    text = SEED_TEXT.read_text()
+    nums = {float(x) for x in re.findall(r"\d+\.\d+", text)}
+    for t in PAPER_TABLES.values():
+        for v in t.values.values():
+            assert set(v) <= nums, (t.key, v)
+    assert sum(len(v) for t in PAPER_TABLES.values() for v in t.values.values()) == (
+        11 * 18 + 14 * 3 + 9 * 3 + 4 * 3 + 7)
+
+
+def test_tables_4_to_7_rows_and_missing(tmp_path):
+    jobs = [
+        _metrics("rig_lowlight", loss="no_decay", psnr=24.0),
+        _metrics("rig_lowlight", psnr=25.0, fps=0.5),
+        _metrics("rig_lowlight", psnr=26.0, fps=5.0),
+        _metrics("rig_lowlight", psnr=23.0, views=3),
+        _metrics("spheres", psnr=20.0, views=2),
+        _metrics("spheres", psnr=29.0, views=6),
+        _metrics("spheres", psnr=31.0, views=8),
+    ]
+    runs = collect_runs([_sweep(tmp_path, jobs)])
+    t4 = _parse_md(to_markdown(build_table("table4", runs)))
+    (title4, rows4), = t4.items()
+    assert title4 == "Sword — ours: `rig_lowlight`"
+    assert list(rows4) == list(PAPER_TABLES["table4"].rows)
+    assert rows4["w/o decay"]["PSNR↑ ours"] == "24.000"
+    assert rows4["w/o decay"]["PSNR↑ Δ"] == f"{24.0 - 27.119:+.3f}"
+    assert rows4["Our Full Model (Final)"]["PSNR↑ ours"] == "26.000"  # fps=5 is the mode
+    t5 = next(iter(_parse_md(to_markdown(build_table("table5", runs))).values()))
+    assert t5["0.5"]["PSNR↑ ours"] == "25.000" and t5["5"]["PSNR↑ ours"] == "26.000"
+    assert t5["100"]["PSNR↑ ours"] == "—" and t5["100"]["PSNR↑ paper"] == "27.328"
+    t6 = next(iter(_parse_md(to_markdown(build_table("table6", runs))).values()))
+    assert t6["3"]["PSNR↑ ours"] == "23.000" and t6["2"]["PSNR↑ ours"] == "—"
+    md7 = to_markdown(build_table("table7", runs))
+    (title7, t7), = _parse_md(md7).items()
+    assert title7 == "Dress — ours: `spheres`"
+    assert list(t7) == ["2", "3", "4", "6", "12", "24", "36", "8"]  # our extra view count last
+    assert t7["6"]["PSNR↑ ours"] == "29.00" and t7["6"]["PSNR↑ Δ"] == "-1.88"
+    assert t7["8"]["PSNR↑ paper"] == "—" and t7["8"]["PSNR↑ ours"] == "31.00"
+    assert "SSIM" not in md7
+
+
+def _curve(wall, psnr, kind):
+    return [dict(wall_s=w, step=10 * i, psnr=p, ssim=None, lpips=None, kind=k)
+            for i, (w, p, k) in enumerate(zip(wall, psnr, kind))]
+
+
+def test_accuracy_vs_time_known_curve_and_png(tmp_path):
+    wall = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    psnr = [12.0, 21.0, 18.0, 22.0, 26.0, 25.0]
+    kind = ["full", "cheap", "full", "full", "cheap", "full"]
+    sweep = tmp_path / "sweep"
+    write_run(sweep / "0", _metrics("spheres", psnr=25.5), _curve(wall, psnr, kind))
+    write_run(sweep / "1", _metrics("spheres", model="ngp", psnr=16.0),
+              _curve([0.5, 1.5], [16.0, 17.0], ["cheap", "cheap"]))
+    runs = collect_runs([sweep])
+    s = summarize(runs[0])
+    # full rows only: (1,12) (3,18) (4,22) (6,25) → 15 dB at 3 s, 20 at 4 s, 25 at 6 s, 30 never
+    assert s.kind == "full" and s.times == {15.0: 3.0, 20.0: 4.0, 25.0: 6.0, 30.0: None}
+    assert s.best_psnr == 25.0
+    s1 = summarize(runs[1])
+    assert s1.kind == "cheap" and s1.times[15.0] == 0.5 and s1.times[20.0] is None
+    assert time_to_level(np.array([3.0, 1.0]), np.array([30.0, np.nan]), 20.0) == 3.0
+
+    out = tmp_path / "results"
+    assert main([str(sweep), "--out", str(out)]) == 0
+    png = out / "accuracy_vs_time.png"
+    data = png.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000
+    w, h = struct.unpack(">II", data[16:24])
+    assert w > 300 and h > 200
+    md = (out / "accuracy_vs_time.md").read_text()
+    row = next(line for line in md.splitlines() if line.startswith("| nerf"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[3:8] == ["full", "3.0", "4.0", "6.0", "—"]
+    assert cells[8:10] == ["25.00", "25.50"]
+    for key in PAPER_TABLES:
+        assert (out / f"{key}.md").stat().st_size > 0 and (out / f"{key}.tex").is_file()
+
+
+def test_missing_and_malformed_runs(tmp_path, caplog):
+    bad = tmp_path / "sweep" / "bad"
+    bad.mkdir(parents=True)
+    (bad / "metrics.json").write_text(json.dumps({"scene": "spheres"}))
+    with caplog.at_level("WARNING"):
+        paths = build_report([tmp_path / "sweep", tmp_path / "nope"], tmp_path / "out")
+    assert any("model: expected present" in r.message for r in caplog.records)
+    md = (tmp_path / "out" / "table3.md").read_text()
+    ours = [row["PSNR↑ ours"] for g in _parse_md(md).values() for row in g.values()]
+    assert ours and set(ours) == {"—"}  # nothing made up
+    assert len(paths) == 12
+
+
+def test_segment_curves_and_null_settings(tmp_path):
+    run = write_run(tmp_path / "run", _metrics("rig_lowlight", views=None, fps=None))
+    for k, (wall, psnr) in enumerate((([1.0, 2.0], [14.0, 19.0]), ([0.5, 1.5], [21.0, 24.0]))):
+        write_curve(run / f"seg{k}" / "curve.csv", _curve(wall, psnr, ["full", "full"]))
+    (r,) = collect_runs([tmp_path])
+    assert r.views is None and r.fps is None
+    s = summarize(r)
+    # seg1's clock restarts: shifted by seg0's last time (2 s) → 20 dB first at 2.5 s
+    assert s.times[15.0] == 2.0 and s.times[20.0] == 2.5 and s.best_psnr == 24.0
+    t6 = next(iter(_parse_md(to_markdown(build_table("table6", [r]))).values()))
+    assert t6["all"]["PSNR↑ ours"] == "25.000" and t6["all"]["PSNR↑ paper"] == "—"
