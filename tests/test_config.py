@@ -1,0 +1,80 @@
+"""Config composition: presets switch exactly their terms; bad keys fail clearly."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
+
+CONF = str(Path(__file__).resolve().parents[1] / "conf")
+TERMS = ("w_event", "w_acc", "w_rgb", "lam_sparsity")
+SWITCHES = ("clipping", "decay", "multiseg")
+
+# preset -> the keys it changes with respect to `full`, and their values
+EXPECTED = {
+    "full": {},
+    "no_event": {"w_event": 0.0},
+    "no_acc": {"w_acc": 0.0},
+    "no_rgb": {"w_rgb": 0.0},
+    "no_sparsity": {"lam_sparsity": 0.0},
+    "only_event": {"w_acc": 0.0, "w_rgb": 0.0},
+    "only_acc": {"w_event": 0.0, "w_rgb": 0.0},
+    "only_rgb": {"w_event": 0.0, "w_acc": 0.0},
+    "no_clipping": {"clipping": False},
+    "no_decay": {"decay": 1.0},
+    "no_multiseg": {"multiseg": False},
+}
+
+
+def _compose(*overrides: str):
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        return compose(config_name="config", overrides=list(overrides))
+
+
+def test_defaults():
+    cfg = _compose()
+    assert cfg.loss.name == "full"
+    assert (cfg.loss.w_event, cfg.loss.w_acc, cfg.loss.w_rgb, cfg.loss.lam_sparsity) == (1.0, 1.0, 0.01, 0.01)
+    assert cfg.loss.sparsity_ramp == 30000
+    assert cfg.data.neg_ratio == 0.9
+
+
+@pytest.mark.parametrize("preset", sorted(EXPECTED))
+def test_loss_preset_switches_exactly_its_terms(preset: str):
+    full = OmegaConf.to_container(_compose().loss)
+    mine = OmegaConf.to_container(_compose(f"loss={preset}").loss)
+    changed = {k: mine[k] for k in TERMS + SWITCHES if mine[k] != full[k]}
+    assert changed == EXPECTED[preset]
+    assert mine["name"] == preset
+
+
+def test_every_loss_file_is_tested():
+    files = {p.stem for p in (Path(CONF) / "loss").glob("*.yaml")}
+    assert files == set(EXPECTED)
+
+
+def test_paper_trainer_preset_has_paper_values():
+    cfg = _compose("trainer=paper")
+    assert (cfg.trainer.n_rays, cfg.trainer.n_coarse, cfg.trainer.n_fine) == (1024, 64, 128)
+    assert cfg.trainer.max_steps == 150000
+
+
+def test_unknown_option_lists_valid_choices():
+    with pytest.raises(ConfigCompositionException, match="Available options"):
+        _compose("loss=no_evnt")
+
+
+def test_unknown_key_is_rejected():
+    with pytest.raises(ConfigCompositionException, match="trainer.max_stepz"):
+        _compose("trainer.max_stepz=3")
+
+
+def test_every_yaml_starts_with_usage_comment():
+    for p in Path(CONF).rglob("*.yaml"):
+        first = p.read_text().splitlines()[0]
+        if first.startswith("# @package"):
+            first = p.read_text().splitlines()[1]
+        assert first.startswith("# "), p
