@@ -1,0 +1,156 @@
+"""Per-iteration random choices of the training batch (method.md "Per-iteration sampling").
+
+Pure functions of their inputs and an explicit :class:`torch.Generator` (no global RNG
+state), so a batch is a function of ``(seed, step)``. Draws happen on the generator's
+device; results are moved to the device of the tensors passed in.
+
+1. :func:`sample_window` — one window ``(t0, t1)`` per iteration, normalised times;
+2. :func:`rays_per_view` — ``N_rand`` rays split equally over the views (supp. Sec. 9);
+3. :func:`sample_pixels` — per view ``neg_ratio`` of the rays uniform over the image,
+   the rest on pixels with ``E(t0, t1) ≠ 0``;
+4. :func:`jitter` — ±0.5 px inside the pixel;
+5. :func:`pick_reference` — one of the two RGB frames nearest ``t1``.
+
+The reference signal ``E_ref→1 = E(t_ref, t1)``, negated when ``t_ref > t1``, is
+``V(t1) − V(t_ref)`` for *both* orderings (for ``t_ref > t1``:
+``−E(t1, t_ref) = −(V(t_ref) − V(t1))``), i.e.
+:meth:`eventrecon.events.accumulate.DecayedEvents.window` ``(pix, t_ref, t1)``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from eventrecon.errors import InputError
+
+__all__ = ["sample_window", "rays_per_view", "sample_pixels", "jitter", "pick_reference"]
+
+
+def _rand(n: int, gen: torch.Generator, dtype: torch.dtype = torch.float64) -> Tensor:
+    return torch.rand(n, generator=gen, dtype=dtype, device=gen.device)
+
+
+def sample_window(gen: torch.Generator) -> tuple[float, float]:
+    """A random window of the segment, in normalised time.
+
+    ``mid ~ U(0,1)``, ``dur ~ U(0,1)``, ``t0 = max(0, mid − dur/2)``,
+    ``t1 = min(1, mid + dur/2)``; so ``0 ≤ t0 ≤ t1 ≤ 1`` and
+    ``E[t1 − t0] = 5/12`` (the clipped length averaged over mid and dur).
+
+    >>> t0, t1 = sample_window(torch.Generator().manual_seed(0))
+    >>> 0.0 <= t0 <= t1 <= 1.0
+    True
+    """
+    mid, dur = _rand(2, gen).tolist()
+    return max(0.0, mid - 0.5 * dur), min(1.0, mid + 0.5 * dur)
+
+
+def rays_per_view(n_rays: int, n_views: int, gen: torch.Generator) -> Tensor:
+    """Equal split of ``n_rays`` over ``n_views``; the remainder goes to random views.
+
+    Returns:
+        ``[V]`` int64 counts, each ``⌊n/V⌋`` or ``⌊n/V⌋ + 1``, summing to ``n_rays``.
+
+    >>> rays_per_view(10, 4, torch.Generator().manual_seed(0)).sort().values
+    tensor([2, 2, 3, 3])
+    """
+    if n_views < 1 or n_rays < 0:
+        raise InputError("sampling", "n_rays/n_views", "n_rays >= 0 and n_views >= 1",
+                         f"{n_rays}/{n_views}")
+    counts = torch.full((n_views,), n_rays // n_views, dtype=torch.int64)
+    extra = torch.randperm(n_views, generator=gen, device=gen.device)[: n_rays % n_views]
+    counts[extra.cpu()] += 1
+    return counts
+
+
+def sample_pixels(event_map: Tensor, counts: Tensor, neg_ratio: float,
+                  gen: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+    """Pixels of one batch: per view, uniform rays and rays on event pixels.
+
+    View ``v`` gets ``counts[v]`` rays: ``round(neg_ratio·counts[v])`` uniform over its
+    ``H·W`` pixels, the others uniform over its pixels with ``event_map ≠ 0`` (uniform
+    over all pixels if it has none). Draws are with replacement, vectorised over views.
+
+    Args:
+        event_map: ``[V, H, W]`` E(t0, t1) values or a bool "has events" map.
+        counts: ``[V]`` rays per view (:func:`rays_per_view`).
+        neg_ratio: fraction of uniform rays, in [0, 1].
+        gen: random generator.
+
+    Returns:
+        ``(view, row, col)``, each ``[N]`` int64 (``N = Σ counts``) on ``event_map``'s
+        device, grouped by view; within a view the uniform rays come first.
+    """
+    if event_map.dim() != 3:
+        raise InputError("sampling", "event_map", "shape [V, H, W]", tuple(event_map.shape))
+    if not 0.0 <= neg_ratio <= 1.0:
+        raise InputError("sampling", "neg_ratio", "a fraction in [0, 1]", neg_ratio)
+    n_views, height, width = event_map.shape
+    counts = counts.to(torch.int64).cpu()
+    if counts.shape != (n_views,) or bool((counts < 0).any()):
+        raise InputError("sampling", "counts", f"[{n_views}] non-negative counts",
+                         counts.tolist())
+    device = event_map.device
+    hw = height * width
+    n_uni = torch.round(counts.double() * neg_ratio).to(torch.int64)
+    n_pos = counts - n_uni
+    has_ev = (event_map != 0).reshape(n_views, hw).to(gen.device)
+    n_ev = has_ev.sum(1).cpu()  # [V] event pixels per view
+    n_pos_ok = torch.where(n_ev > 0, n_pos, 0)  # views without events draw uniformly
+    n_uni = counts - n_pos_ok
+    # Uniform rays: view-local flat index floor(u·HW).
+    v_uni = torch.repeat_interleave(torch.arange(n_views), n_uni).to(gen.device)
+    flat_uni = (_rand(int(n_uni.sum()), gen) * hw).long().clamp_max(hw - 1)
+    # Event rays: the k-th event pixel of view v, k = floor(u·n_ev[v]).
+    ev_flat = torch.nonzero(has_ev.reshape(-1)).squeeze(1)  # sorted by view, then pixel
+    ev_start = (torch.cumsum(n_ev, 0) - n_ev).to(gen.device)
+    v_pos = torch.repeat_interleave(torch.arange(n_views), n_pos_ok).to(gen.device)
+    n_ev_dev = n_ev.to(gen.device)
+    k = (_rand(int(n_pos_ok.sum()), gen) * n_ev_dev[v_pos]).long()
+    k = torch.minimum(k, n_ev_dev[v_pos] - 1)
+    flat_pos = ev_flat[ev_start[v_pos] + k] - v_pos * hw
+    # Group by view, uniform rays first within each view.
+    view = torch.cat([v_uni, v_pos])
+    flat = torch.cat([flat_uni, flat_pos])
+    order = torch.sort(view, stable=True).indices
+    view, flat = view[order].to(device), flat[order].to(device)
+    return view, flat // width, flat % width
+
+
+def jitter(uv: Tensor, gen: torch.Generator) -> Tensor:
+    """``uv + U(−0.5, 0.5)`` per coordinate: a uniform point in each pixel's square.
+
+    Args:
+        uv: ``[N, 2]`` pixel-centre coordinates (column, row), floating point.
+
+    Returns:
+        ``[N, 2]`` jittered coordinates, same dtype and device.
+    """
+    if not uv.is_floating_point():
+        uv = uv.to(torch.float64)
+    noise = torch.rand(uv.shape, generator=gen, dtype=uv.dtype, device=gen.device) - 0.5
+    return uv + noise.to(uv.device)
+
+
+def pick_reference(frame_times: Tensor, t1: float, gen: torch.Generator) -> int:
+    """Index of a reference frame: one of the two frames nearest ``t1``, at random.
+
+    Args:
+        frame_times: ``[F]`` frame times (same units as ``t1``), ``F ≥ 1``.
+        t1: the window end.
+
+    Returns:
+        the chosen frame index (the only frame when ``F = 1``). Ties in distance keep
+        the lower index first.
+
+    >>> pick_reference(torch.tensor([0.0, 10.0, 20.0]), 12.0, torch.Generator()) in (1, 2)
+    True
+    """
+    n = int(frame_times.shape[0])
+    if n == 0:
+        raise InputError("sampling", "frame_times", "at least one RGB frame", 0)
+    dist = (frame_times.detach().cpu().to(torch.float64) - float(t1)).abs()
+    nearest = torch.sort(dist, stable=True).indices[: min(2, n)]
+    pick = int(_rand(1, gen).item() * nearest.shape[0])
+    return int(nearest[min(pick, nearest.shape[0] - 1)])
