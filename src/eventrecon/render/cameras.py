@@ -138,6 +138,8 @@ class Cameras:
     width: int
     height: int
     names: list[str] = field(default_factory=list)
+    #: per-view full-image rays, keyed by the view's parameters (see :meth:`image_rays`)
+    _rays_cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.K = torch.as_tensor(self.K, dtype=torch.float64)
@@ -154,6 +156,10 @@ class Cameras:
 
     def __len__(self) -> int:
         return int(self.K.shape[0])
+
+    def __getstate__(self) -> dict:
+        """Pickle without the ray cache (it is rebuilt on demand)."""
+        return {**self.__dict__, "_rays_cache": {}}
 
     def select(self, idx: Sequence[int]) -> "Cameras":
         """The cameras at positions ``idx`` (in that order)."""
@@ -206,9 +212,23 @@ class Cameras:
         return torch.stack([u.reshape(-1), v.reshape(-1)], dim=-1).double()
 
     def image_rays(self, view: int) -> tuple[Tensor, Tensor]:
-        """All ``H*W`` rays of one view, row-major: ``([H*W, 3], [H*W, 3])``."""
-        uv = self.pixel_grid()
-        return self.rays(torch.full((uv.shape[0],), view, dtype=torch.long), uv)
+        """All ``H*W`` rays of one view, row-major: ``([H*W, 3], [H*W, 3])``.
+
+        Cached per view (the Newton undistortion of every pixel is the costly part); the
+        key holds the view's ``K``, ``dist``, ``c2w`` and the image size, so a camera
+        changed in place is recomputed. Returns copies, safe to modify.
+        """
+        key = (int(view), self.width, self.height,
+               *torch.cat([self.K[view].flatten(), self.dist[view],
+                           self.c2w[view].flatten()]).tolist())
+        hit = self._rays_cache.get(key)
+        if hit is None:
+            uv = self.pixel_grid()
+            hit = self.rays(torch.full((uv.shape[0],), int(view), dtype=torch.long), uv)
+            if len(self._rays_cache) >= 64:
+                self._rays_cache.pop(next(iter(self._rays_cache)))
+            self._rays_cache[key] = hit
+        return hit[0].clone(), hit[1].clone()
 
     def project(self, xyz: Tensor, view: Tensor) -> tuple[Tensor, Tensor]:
         """Project world points into their cameras (with distortion).

@@ -1,0 +1,350 @@
+"""Convert recordings of the camera rig into the published dataset layout.
+
+``python -m eventrecon.convert aedat4 --inputs cam0.aedat4 … cam5.aedat4 --out DIR
+[--start-us S] [--end-us E] [--fps 5] [--background-us B] [--camdict camdict.json]``
+
+One AEDAT4 recording per camera (decoded with the ``aedat`` package: events, APS frames,
+triggers). The steps:
+
+1. **Align.** The cameras are hardware-synchronised (sync cable; a timestamp reset on
+   the master resets the slaves), so one µs timestamp is one instant on every camera.
+   The shared span is ``[max_i first_i, min_i last_i]`` over the cameras' events.
+2. **Cut.** ``--start-us``/``--end-us``/``--background-us`` are offsets in µs from the
+   start of the shared span (defaults: the whole span). Events with
+   ``start ≤ t ≤ end`` are kept.
+3. **Normalise.** ``t ← (t − start) · 1000 / (end − start)`` in float64 (integer µs
+   differences first, so no precision is lost before the division).
+4. **Frames.** Target times ``start + k · 10⁶/fps`` (``k = 0, 1, …`` while ``≤ end``);
+   each camera contributes its APS frame whose timestamp (exposure midpoint when the
+   file records the exposure, else the frame timestamp) is nearest the target. The
+   frame folder is named by the target's time unit. Colour frames are stored as RGB
+   PNGs, greyscale (Bayer raw) frames as single-channel PNGs.
+5. **Background.** Per camera the APS frame nearest ``--background-us`` (the empty
+   scene), stored as ``background/<view>.png``.
+
+Views are named ``00, 01, …`` in ``--inputs`` order; ``meta.json`` records the source
+files, the span, the chosen frame timestamps and the real-data defaults
+(``tonemap_eps`` 3e-2, ``decay`` 0.93). Cameras come from ``--camdict`` (copied after
+validation); the output is written to a temporary folder and renamed (atomic).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import shutil
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import imageio.v3 as iio
+import numpy as np
+
+from eventrecon import TIME_SPAN
+from eventrecon.errors import InputError
+from eventrecon.render.cameras import load_camdict
+
+__all__ = ["Recording", "decode_aedat4", "read_frames", "shared_span", "nearest_frames",
+           "convert_aedat4", "main"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Recording:
+    """One camera's AEDAT4 recording (events in full, frames by timestamp only).
+
+    Attributes:
+        path: the file.
+        width, height: the event sensor size.
+        t, x, y: ``[N]`` uint64 µs / uint16 coordinates of the events, in file order.
+        on: ``[N]`` bool polarity (``True`` = ON = +1).
+        frame_t: ``[M]`` int64 µs timestamp of each APS frame (exposure midpoint).
+        triggers: ``[T]`` structured array (``t``, ``source``).
+    """
+
+    path: Path
+    width: int
+    height: int
+    t: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    on: np.ndarray
+    frame_t: np.ndarray
+    triggers: np.ndarray
+
+
+def _is_decode_error(e: BaseException) -> bool:
+    """aedat raises RuntimeError, or a Rust panic (``pyo3_runtime.PanicException``, a
+    BaseException) on malformed flatbuffers; both mean a corrupt file."""
+    return (isinstance(e, (RuntimeError, ValueError, OSError))
+            or type(e).__name__ == "PanicException")
+
+
+def _decoder(path: Path):
+    import aedat
+
+    if not path.is_file():
+        raise InputError(path, "<file>", "an existing AEDAT4 recording", "missing")
+    try:
+        return aedat.Decoder(str(path))
+    except BaseException as e:  # noqa: B036 -- Rust panics are BaseExceptions
+        if not _is_decode_error(e):
+            raise
+        raise InputError(path, "<file>", "a readable AEDAT4 recording",
+                         str(e).splitlines()[0][:60]) from None
+
+
+def _frame_time(frame: dict) -> int:
+    b, e = int(frame.get("exposure_begin_t", 0)), int(frame.get("exposure_end_t", 0))
+    return (b + e) // 2 if e > b > 0 else int(frame["t"])
+
+
+def decode_aedat4(path: str | Path) -> Recording:
+    """Decode events, frame timestamps and triggers of the first event/frame streams."""
+    path = Path(path)
+    dec = _decoder(path)
+    streams = dec.id_to_stream()
+    ev_ids = sorted(i for i, s in streams.items() if s["type"] == "events")
+    fr_ids = sorted(i for i, s in streams.items() if s["type"] == "frame")
+    if not ev_ids:
+        raise InputError(path, "streams", "an event stream",
+                         sorted(s["type"] for s in streams.values()))
+    ev_id, fr_id = ev_ids[0], (fr_ids[0] if fr_ids else None)
+    w, h = int(streams[ev_id]["width"]), int(streams[ev_id]["height"])
+    events, frame_t, triggers = [], [], []
+    try:
+        for packet in dec:
+            sid = packet["stream_id"]
+            if sid == ev_id and "events" in packet:
+                events.append(packet["events"])
+            elif sid == fr_id and "frame" in packet:
+                frame_t.append(_frame_time(packet["frame"]))
+            elif "triggers" in packet:
+                triggers.append(packet["triggers"])
+    except BaseException as e:  # noqa: B036
+        if not _is_decode_error(e):
+            raise
+        raise InputError(path, "<file>", "a complete AEDAT4 recording",
+                         str(e).splitlines()[0][:60]) from None
+    ev = np.concatenate(events) if events else np.zeros(0, [("t", "<u8"), ("x", "<u2"),
+                                                            ("y", "<u2"), ("on", "?")])
+    t = np.ascontiguousarray(ev["t"]).astype(np.int64)
+    if t.size > 1 and (np.diff(t) < 0).any():
+        i = int(np.flatnonzero(np.diff(t) < 0)[0])
+        raise InputError(path, "events.t", "non-decreasing timestamps (record after the "
+                         "master's timestamp reset)", f"{t[i]} then {t[i + 1]} µs")
+    x, y = np.ascontiguousarray(ev["x"]), np.ascontiguousarray(ev["y"])
+    if x.size and (int(x.max()) >= w or int(y.max()) >= h):
+        raise InputError(path, "events.x/y", f"inside the {w}×{h} sensor",
+                         f"max ({int(x.max())}, {int(y.max())})")
+    trig = np.concatenate(triggers) if triggers else np.zeros(0, [("t", "<u8"), ("source", "u1")])
+    return Recording(path, w, h, t, x, y, np.ascontiguousarray(ev["on"]),
+                     np.asarray(frame_t, np.int64), trig)
+
+
+def read_frames(path: str | Path, indices: Sequence[int]) -> dict[int, np.ndarray]:
+    """The APS frames with the given ordinal indices (second pass over the file).
+
+    Returns ``{index: [H, W, 3] or [H, W] uint8}`` (RGB, or greyscale/Bayer raw).
+    """
+    path = Path(path)
+    dec = _decoder(path)
+    fr_ids = sorted(i for i, s in dec.id_to_stream().items() if s["type"] == "frame")
+    want, out, k = set(int(i) for i in indices), {}, 0
+    if not want:
+        return out
+    for packet in dec:
+        if fr_ids and packet["stream_id"] == fr_ids[0] and "frame" in packet:
+            if k in want:
+                px = np.asarray(packet["frame"]["pixels"], np.uint8)
+                out[k] = px[..., :3] if px.ndim == 3 else px
+            k += 1
+            if len(out) == len(want):
+                break
+    return out
+
+
+def shared_span(recordings: Sequence[Recording]) -> tuple[int, int]:
+    """``(max first event µs, min last event µs)`` over the cameras."""
+    for r in recordings:
+        if r.t.size == 0:
+            raise InputError(r.path, "events", "at least one event", "none")
+    s0 = max(int(r.t[0]) for r in recordings)
+    s1 = min(int(r.t[-1]) for r in recordings)
+    if s1 <= s0:
+        raise InputError(recordings[0].path, "time span",
+                         "recordings that overlap in time (same synchronised clock)",
+                         f"shared span [{s0}, {s1}] µs")
+    return s0, s1
+
+
+def nearest_frames(frame_t: np.ndarray, targets_us: np.ndarray) -> np.ndarray:
+    """``[T]`` index of the frame whose timestamp is nearest each target (ties: earlier).
+
+    >>> nearest_frames(np.array([0, 100, 200]), np.array([-5, 49, 50, 51, 999]))
+    array([0, 0, 0, 1, 2])
+    """
+    if len(frame_t) < 2:
+        return np.zeros(len(targets_us), np.int64)
+    j = np.clip(np.searchsorted(frame_t, targets_us), 1, len(frame_t) - 1)
+    left, right = frame_t[j - 1], frame_t[j]
+    return np.where(targets_us - left <= right - targets_us, j - 1, j)
+
+
+def _time_name(t: float) -> str:
+    r = round(t)
+    return f"{r:04d}" if abs(t - r) < 1e-6 else f"{t:09.4f}"
+
+
+def convert_aedat4(inputs: Sequence[str | Path], out: str | Path, start_us: int = 0,
+                   end_us: int | None = None, fps: float = 5.0,
+                   background_us: int | None = None, camdict: str | Path | None = None,
+                   split: str = "train", bayer: bool = True, overwrite: bool = False) -> Path:
+    """Convert one AEDAT4 recording per camera into ``out/<split>/`` (module docstring).
+
+    Args:
+        inputs: ``V`` recordings, one per camera (view ``i`` = ``inputs[i]``).
+        out: the scene folder to create.
+        start_us, end_us: the cut, µs from the start of the shared span
+            (``end_us=None``: to the end of the shared span).
+        fps: RGB reference frames per second.
+        background_us: time of the empty scene (µs from the shared-span start), or None.
+        camdict: the rig's ``camdict.json`` (``V`` entries, sensor-sized), or None.
+        split: split folder name.
+        bayer: whether the event pixels are colour (Bayer) pixels (DAVIS 346C).
+        overwrite: replace an existing ``out``.
+
+    Returns:
+        The scene folder.
+    """
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise InputError(out, "<folder>", "a new output folder (or --overwrite)", "exists")
+    recs = [decode_aedat4(p) for p in inputs]
+    sizes = {(r.width, r.height) for r in recs}
+    if len(sizes) != 1:
+        raise InputError(recs[-1].path, "resolution", f"the same sensor size for all cameras",
+                         sorted(sizes))
+    (w, h), = sizes
+    s0, s1 = shared_span(recs)
+    start = s0 + int(start_us)
+    end = s1 if end_us is None else s0 + int(end_us)
+    if not s0 <= start < end <= s1:
+        raise InputError("--start-us/--end-us", "cut", f"0 ≤ start < end ≤ {s1 - s0} µs "
+                         "(offsets within the shared span)", f"[{start_us}, {end_us}]")
+    span = end - start
+    n_frames = int(np.floor(span * fps / 1e6 + 1e-9)) + 1 if fps > 0 else 0
+    targets = start + np.round(np.arange(n_frames) * 1e6 / fps).astype(np.int64) if n_frames else \
+        np.zeros(0, np.int64)
+    cams_json = None
+    if camdict is not None:
+        cams = load_camdict(camdict)
+        if len(cams) != len(recs) or (cams.width, cams.height) != (w, h):
+            raise InputError(camdict, "entries", f"{len(recs)} cameras of {w}×{h}",
+                             f"{len(cams)} of {cams.width}×{cams.height}")
+        cams_json = Path(camdict).read_text()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        cut = _Cut(start, end, s0, targets, None if background_us is None else s0 + background_us)
+        _write(recs, tmp / split, cut)
+        meta = {"source": [str(Path(p)) for p in inputs], "start_us": start, "end_us": end,
+                "duration_s": (end - start) / 1e6, "fps": fps, "tonemap_eps": 3e-2,
+                "decay": 0.93, "bayer": bayer, "background_us": cut.background}
+        meta.update(cut.log)
+        if cams_json is not None:
+            (tmp / split / "camdict.json").write_text(cams_json)
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if out.exists():
+        shutil.rmtree(out)
+    os.replace(tmp, out)
+    return out
+
+
+@dataclass
+class _Cut:
+    """The chosen span and sample times, all in shared-clock µs."""
+
+    start: int
+    end: int
+    s0: int
+    targets: np.ndarray
+    background: int | None
+    log: dict = field(default_factory=lambda: {"frames_us": {}, "background_frames_us": []})
+
+
+def _write(recs: Sequence[Recording], sp: Path, cut: _Cut) -> None:
+    """Write events, frames and backgrounds of every camera into the split folder ``sp``."""
+    span = cut.end - cut.start
+    for v, r in enumerate(recs):
+        name = f"{v:02d}"
+        keep = slice(np.searchsorted(r.t, cut.start, "left"),
+                     np.searchsorted(r.t, cut.end, "right"))
+        t_norm = (r.t[keep] - cut.start).astype(np.float64) * TIME_SPAN / span
+        (sp / "events").mkdir(parents=True, exist_ok=True)
+        np.savez(sp / "events" / f"{name}.npz", x=r.x[keep].astype(np.int16),
+                 y=r.y[keep].astype(np.int16), t=t_norm,
+                 p=np.where(r.on[keep], 1, -1).astype(np.int8))
+        wanted: dict[str, int] = {}
+        if r.frame_t.size and len(cut.targets):
+            for tgt, i in zip(cut.targets, nearest_frames(r.frame_t, cut.targets)):
+                wanted[_time_name((tgt - cut.start) * TIME_SPAN / span)] = int(i)
+        bg = None
+        if cut.background is not None:
+            if not r.frame_t.size:
+                raise InputError(r.path, "frames", "APS frames for the background", "none")
+            bg = int(nearest_frames(r.frame_t, np.array([cut.background]))[0])
+        frames = read_frames(r.path, list(wanted.values()) + ([bg] if bg is not None else []))
+        for folder, i in wanted.items():
+            (sp / "rgb" / folder).mkdir(parents=True, exist_ok=True)
+            iio.imwrite(sp / "rgb" / folder / f"{name}.png", frames[i])
+        if bg is not None:
+            (sp / "background").mkdir(parents=True, exist_ok=True)
+            iio.imwrite(sp / "background" / f"{name}.png", frames[bg])
+            cut.log["background_frames_us"].append(int(r.frame_t[bg]))
+        cut.log["frames_us"][name] = [int(r.frame_t[i]) for i in wanted.values()]
+        log.info("%s -> view %s: %d events, %d frames", r.path, name, keep.stop - keep.start,
+                 len(wanted))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """CLI entry (``python -m eventrecon.convert aedat4 ...``); 2 on bad input."""
+    p = argparse.ArgumentParser(prog="python -m eventrecon.convert",
+                                description="convert rig recordings to the published layout")
+    sub = p.add_subparsers(dest="fmt", required=True)
+    a = sub.add_parser("aedat4", help="one AEDAT4 recording per camera")
+    a.add_argument("--inputs", nargs="+", required=True, type=Path)
+    a.add_argument("--out", required=True, type=Path)
+    a.add_argument("--start-us", type=int, default=0, help="cut start, µs into the shared span")
+    a.add_argument("--end-us", type=int, default=None, help="cut end, µs into the shared span")
+    a.add_argument("--fps", type=float, default=5.0, help="RGB reference frames per second")
+    a.add_argument("--background-us", type=int, default=None,
+                   help="empty-scene time, µs into the shared span")
+    a.add_argument("--camdict", type=Path, default=None, help="the rig's camdict.json")
+    a.add_argument("--split", default="train")
+    a.add_argument("--no-bayer", dest="bayer", action="store_false",
+                   help="event pixels are monochrome (not a DAVIS 346C)")
+    a.add_argument("--overwrite", action="store_true")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    try:
+        out = convert_aedat4(args.inputs, args.out, args.start_us, args.end_us, args.fps,
+                             args.background_us, args.camdict, args.split, args.bayer,
+                             args.overwrite)
+    except InputError as e:
+        sys.stderr.write(f"error: {e}\n")
+        return 2
+    log.info("wrote %s", out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
