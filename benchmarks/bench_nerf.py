@@ -1,0 +1,169 @@
+"""Training throughput of the NeRF MLP field: samples per second of one full step.
+
+One step = field forward on a batch of (x, y, z, t) samples, an MSE loss on density and
+colour, backward, and an AdamW step (lr 1e-4, weight decay 0.1) — the per-sample work
+of a training iteration without the compositing. Compared with a naive implementation of
+the same network (per-band Python loop for the encoding, out-of-place activations), the
+style of common NeRF reimplementations, to give a ratio.
+
+Usage::
+
+    python benchmarks/bench_nerf.py                  # 8x256, 16384 samples, 2 threads
+    python benchmarks/bench_nerf.py --depth 4 --width 64 --batch 49152 --threads 1
+    python benchmarks/bench_nerf.py --renderer       # also rays/s of Renderer + field
+
+Prints one line per implementation (best and median samples/s over the timed steps,
+the two implementations alternating step by step) and the ratio of the best.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from eventrecon.fields.nerf import NeRFField
+from eventrecon.render.volume import Renderer
+
+
+class NaiveNeRF(nn.Module):
+    """The same network written the straightforward way (reference for the ratio)."""
+
+    def __init__(self, depth: int, width: int, skip: int, pos_bands: int, time_bands: int,
+                 colour_width: int) -> None:
+        super().__init__()
+        self.pos_bands, self.time_bands, self.skip = pos_bands, time_bands, skip
+        in_dim = 3 * (1 + 2 * pos_bands) + (1 + 2 * time_bands)
+        layers = [nn.Linear(in_dim, width)]
+        for i in range(1, depth):
+            layers.append(nn.Linear(width + (in_dim if i - 1 == skip else 0), width))
+        self.layers = nn.ModuleList(layers)
+        self.density = nn.Linear(width, 1)
+        self.colour_hidden = nn.Linear(width, colour_width)
+        self.colour_out = nn.Linear(colour_width, 3)
+
+    @staticmethod
+    def embed(x: Tensor, n_bands: int) -> Tensor:
+        out = [x]
+        for k in range(n_bands):
+            for fn in (torch.sin, torch.cos):
+                out.append(fn(x * 2.0**k))
+        return torch.cat(out, dim=-1)
+
+    def forward(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
+        enc = torch.cat([self.embed(xyz, self.pos_bands), self.embed(t, self.time_bands)], -1)
+        h = enc
+        for i, layer in enumerate(self.layers):
+            h = F.relu(layer(h))
+            if i == self.skip:
+                h = torch.cat([enc, h], dim=-1)
+        sigma = F.softplus(self.density(h)[:, 0] - 1.0)
+        rgb = torch.sigmoid(self.colour_out(F.relu(self.colour_hidden(h))))
+        return sigma, rgb
+
+
+class _Stepper:
+    """One training step (forward, MSE on σ and colour, backward, AdamW) on a fixed batch."""
+
+    def __init__(self, field: nn.Module, batch: int, seed: int) -> None:
+        gen = torch.Generator().manual_seed(seed)
+        self.field = field
+        self.xyz = torch.rand(batch, 3, generator=gen) * 2 - 1
+        self.t = torch.rand(batch, 1, generator=gen)
+        self.target_sigma = torch.rand(batch, generator=gen)
+        self.target_rgb = torch.rand(batch, 3, generator=gen)
+        self.opt = torch.optim.AdamW(field.parameters(), lr=1e-4, weight_decay=0.1)
+
+    def __call__(self) -> float:
+        t0 = time.perf_counter()
+        sigma, rgb = self.field(self.xyz, self.t)
+        loss = F.mse_loss(sigma, self.target_sigma) + F.mse_loss(rgb, self.target_rgb)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
+        return time.perf_counter() - t0
+
+
+def time_interleaved(steppers: dict[str, _Stepper], steps: int, warmup: int
+                     ) -> dict[str, list[float]]:
+    """Per-step seconds of each stepper, alternating them step by step.
+
+    Alternating makes both see the same background load (the machine may be shared);
+    the best step is the least disturbed estimate, the median the typical one.
+    """
+    times: dict[str, list[float]] = {name: [] for name in steppers}
+    for i in range(warmup + steps):
+        for name, step in steppers.items():
+            sec = step()
+            if i >= warmup:
+                times[name].append(sec)
+    return times
+
+
+def time_renderer(field: nn.Module, rays: int, n_coarse: int, n_fine: int, steps: int,
+                  seed: int) -> float:
+    """Median seconds of a renderer training step on ``rays`` rays through the cylinder."""
+    gen = torch.Generator().manual_seed(seed)
+    renderer = Renderer(n_coarse, n_fine)
+    o = torch.tensor([[-2.0, -0.25, 0.0]]).expand(rays, 3).clone()
+    d = torch.nn.functional.normalize(
+        torch.tensor([[1.0, 0.0, 0.0]]) + 0.1 * torch.randn(rays, 3, generator=gen), dim=-1)
+    t = torch.rand(rays, 1, generator=gen)
+    bg = torch.full((rays, 3), 0.5)
+    opt = torch.optim.AdamW(field.parameters(), lr=1e-4, weight_decay=0.1)
+    times = []
+    for i in range(steps + 1):
+        t0 = time.perf_counter()
+        levels = renderer(field, o, d, t, bg, perturb=True, gen=gen)
+        loss = sum(((lv["rgb"] - 0.3) ** 2).mean() for lv in levels)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if i > 0:
+            times.append(time.perf_counter() - t0)
+    return sorted(times)[len(times) // 2]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--depth", type=int, default=8)
+    p.add_argument("--width", type=int, default=256)
+    p.add_argument("--skip", type=int, default=4)
+    p.add_argument("--batch", type=int, default=16384, help="samples per step")
+    p.add_argument("--steps", type=int, default=5)
+    p.add_argument("--warmup", type=int, default=2)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--renderer", action="store_true",
+                   help="also time Renderer(32, 32) + field on 256 rays x 3 times")
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    arch = dict(depth=args.depth, width=args.width, skip=args.skip, pos_bands=14,
+                time_bands=7, colour_width=128)
+    torch.manual_seed(args.seed)
+    ours = NeRFField(anneal_steps=0, **arch)
+    torch.manual_seed(args.seed)
+    naive = NaiveNeRF(**arch)
+    times = time_interleaved({"eventrecon": _Stepper(ours, args.batch, args.seed),
+                              "naive": _Stepper(naive, args.batch, args.seed)},
+                             args.steps, args.warmup)
+    best = {}
+    for name, ts in times.items():
+        best[name] = args.batch / min(ts)
+        median = sorted(ts)[len(ts) // 2]
+        print(f"{name:>10}: best {best[name] / 1e3:7.1f} k samples/s, median "
+              f"{args.batch / median / 1e3:7.1f} k samples/s ({median * 1e3:7.1f} ms/step; "
+              f"{args.depth}x{args.width}, batch {args.batch}, {args.threads} threads)")
+    print(f"     ratio (best): {best['eventrecon'] / best['naive']:.2f}x")
+    if args.renderer:
+        rays = 3 * 256
+        sec = time_renderer(ours, rays, 32, 32, args.steps, args.seed)
+        print(f"  renderer: {rays / sec:8.0f} rays/s  ({sec * 1e3:7.1f} ms/step, 768 rays, "
+              f"32 + 32 samples, both levels)")
+
+
+if __name__ == "__main__":
+    main()

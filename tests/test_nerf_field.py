@@ -1,0 +1,201 @@
+"""Positional encoding, band annealing and the NeRF MLP field."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from torch import nn
+
+from eventrecon.errors import InputError
+from eventrecon.fields import Field, NeRFField
+from eventrecon.fields.encoding import BandAnnealing, PositionalEncoding, band_window
+from eventrecon.render.volume import Renderer
+
+CONF = "conf/model/nerf.yaml"
+
+
+def _reference_encoding(x: torch.Tensor, n_bands: int) -> torch.Tensor:
+    """Slow float64 reference: raw input, then per band sin of all dims, cos of all dims."""
+    x = x.double()
+    parts = [x]
+    for k in range(n_bands):
+        parts += [torch.sin(2.0**k * x), torch.cos(2.0**k * x)]
+    return torch.cat(parts, dim=-1)
+
+
+def test_encoding_values_at_known_inputs() -> None:
+    enc = PositionalEncoding(3, 3, anneal_steps=0)
+    x = torch.tensor([[math.pi / 2, math.pi / 4, 0.0]])
+    out = enc(x)[0]
+    assert enc.out_dim == 21 and out.shape == (21,)
+    assert torch.allclose(out[:3], x[0])
+    # band 0: sin(pi/2, pi/4, 0), cos(...); band 1: sin(pi, pi/2, 0), cos(...)
+    s2 = math.sqrt(0.5)
+    expected_b0 = [1.0, s2, 0.0, 0.0, s2, 1.0]
+    expected_b1 = [0.0, 1.0, 0.0, -1.0, 0.0, 1.0]
+    expected_b2 = [0.0, 0.0, 0.0, 1.0, -1.0, 1.0]  # sin/cos of (2pi, pi, 0)
+    assert torch.allclose(out[3:], torch.tensor(expected_b0 + expected_b1 + expected_b2),
+                          atol=1e-6)
+
+
+def test_encoding_at_and_beyond_the_unit_box_matches_float64() -> None:
+    enc = PositionalEncoding(3, 14, anneal_steps=0)
+    x = torch.tensor([[1.0, -1.0, 0.0], [1.0 + 1e-6, -1.0 - 1e-3, 1.5], [-1.0, 1.0, 1.0],
+                      [-3.0, 2.0, 1e-7]], requires_grad=True)
+    out = enc(x)
+    out.sum().backward()
+    assert bool(torch.isfinite(out).all()) and bool(torch.isfinite(x.grad).all())
+    # 2^k x is exact in floating point, so even band 13 (8192 x) is exact to sin's ulp.
+    assert float((out.detach().double() - _reference_encoding(x.detach(), 14)).abs().max()) < 2e-6
+    # Time at the segment edges.
+    t_enc = PositionalEncoding(1, 7, anneal_steps=0)
+    t = torch.tensor([[0.0], [1.0]])
+    assert float((t_enc(t).double() - _reference_encoding(t, 7)).abs().max()) < 1e-6
+
+
+def test_annealing_window_turns_bands_on_in_order() -> None:
+    enc = PositionalEncoding(2, 4, anneal_steps=400)
+    x = torch.rand(5, 2) * 2 - 1
+    # step 0: every band off, only the raw input is left.
+    assert torch.equal(enc(x)[:, 2:], torch.zeros(5, 16))
+    # step 150: alpha = 1.5 -> band 0 fully on, band 1 at w = 0.5, bands 2, 3 off.
+    enc.set_progress(150)
+    assert enc.window.tolist() == pytest.approx([1.0, 0.5, 0.0, 0.0], abs=1e-7)
+    full = _reference_encoding(x, 4).float()
+    out = enc(x)
+    assert torch.allclose(out[:, :6], full[:, :6], atol=1e-6)
+    assert torch.allclose(out[:, 6:10], 0.5 * full[:, 6:10], atol=1e-6)
+    assert torch.equal(out[:, 10:], torch.zeros(5, 8))
+    # band k is off up to alpha = k and on from alpha = k + 1 (alpha = 4 step / 400)
+    for k in range(4):
+        assert band_window(4, 100 * k, 400)[k] == 0.0
+        assert band_window(4, 100 * (k + 1), 400)[k] == 1.0
+        assert 0.0 < band_window(4, 100 * k + 30, 400)[k] < 1.0
+    enc.set_progress(10_000)
+    assert torch.allclose(enc(x), full, atol=1e-6)
+    # the window is a checkpointed buffer
+    assert "window" in enc.state_dict()
+
+
+def test_band_annealing_callback_sets_every_encoding() -> None:
+    field = NeRFField(depth=2, width=8, skip=-1, pos_bands=5, time_bands=3, anneal_steps=1000)
+    (callback,) = field.callbacks()
+    assert isinstance(callback, BandAnnealing)
+    module = nn.ModuleDict({"field": field})
+    callback.on_train_batch_start(SimpleNamespace(global_step=300), module, None, 0)
+    assert field.pos_enc.window.tolist() == pytest.approx(band_window(5, 300, 1000))
+    assert field.time_enc.window.tolist() == pytest.approx(band_window(3, 300, 1000))
+    # time: alpha = 3 * 300 / 1000 = 0.9 -> band 0 at (1 - cos(0.9 pi)) / 2, the rest off
+    assert field.time_enc.window.tolist() == pytest.approx(
+        [0.5 * (1 - math.cos(0.9 * math.pi)), 0.0, 0.0])
+
+
+def test_nerf_field_architecture_and_parameter_count() -> None:
+    f = NeRFField()
+    in_dim = 3 * 29 + 1 * 15  # raw + sin/cos of 14 (position) and 7 (time) bands
+    widths = [layer.in_features for layer in f.layers]
+    assert widths == [in_dim, 256, 256, 256, 256, 256 + in_dim, 256, 256]
+    expected = ((in_dim + 1) * 256 + 7 * 257 * 256 + in_dim * 256  # trunk incl. skip inputs
+                + 257 * 1 + 257 * 128 + 129 * 3)                 # density + colour heads
+    assert sum(p.numel() for p in f.parameters()) == expected
+    assert isinstance(f, Field)
+    sigma, rgb = f(torch.rand(100, 3) * 2 - 1, torch.rand(100, 1))
+    assert sigma.shape == (100,) and rgb.shape == (100, 3)
+    assert bool((sigma >= 0).all()) and bool(((rgb > 0) & (rgb < 1)).all())
+    groups = f.param_groups(1e-4)
+    assert len(groups) == 1 and groups[0]["lr"] == 1e-4
+    with pytest.raises(InputError, match="depth"):
+        NeRFField(depth=0)
+
+
+def test_config_instantiates_the_field_and_carries_the_optimiser() -> None:
+    from hydra.utils import instantiate
+
+    cfg = OmegaConf.load(CONF)
+    assert open(CONF).readline().startswith("# python train.py model=nerf")
+    assert cfg.optim.lr == 1e-4 and cfg.optim.weight_decay == 0.1
+    kwargs = {k: v for k, v in cfg.items() if k != "optim"}
+    kwargs.update(depth=2, width=16, pos_bands=2, time_bands=1)
+    f = instantiate(OmegaConf.create(kwargs))
+    assert isinstance(f, NeRFField) and len(f.layers) == 2
+
+
+@pytest.fixture
+def one_thread():
+    """Tiny matrices: one thread avoids OpenMP oversubscription on a shared machine."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def test_nerf_field_fits_a_tiny_target(one_thread) -> None:
+    gen = torch.Generator().manual_seed(0)
+    f = NeRFField(depth=3, width=64, skip=1, pos_bands=4, time_bands=2, anneal_steps=0,
+                  colour_width=32)
+    xyz = torch.rand(32, 3, generator=gen) * 2 - 1
+    t = torch.rand(32, 1, generator=gen)
+    target_sigma = 5 * torch.rand(32, generator=gen)
+    target_rgb = 0.1 + 0.8 * torch.rand(32, 3, generator=gen)
+    opt = torch.optim.Adam(f.parameters(), lr=3e-3)
+    for _ in range(400):
+        sigma, rgb = f(xyz, t)
+        loss = ((sigma - target_sigma) ** 2).mean() + ((rgb - target_rgb) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        sigma, rgb = f(xyz, t)
+    assert float((sigma - target_sigma).abs().max()) < 0.1
+    assert float((rgb - target_rgb).abs().max()) < 0.02
+
+
+def test_render_through_nerf_field_under_bf16_autocast_is_finite() -> None:
+    f = NeRFField(depth=4, width=32, skip=1, pos_bands=14, time_bands=7, anneal_steps=0,
+                  colour_width=16)
+    o = torch.tensor([[-2.0, -0.25, 0.0], [0.0, -2.0, 0.1], [1.0, -0.25, -2.0]])
+    d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    t = torch.tensor([[0.0], [1.0], [0.5]])
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        levels = Renderer(16, 16)(f, o, d, t, torch.full((3, 3), 0.5), perturb=True,
+                                  gen=torch.Generator().manual_seed(0))
+        loss = sum(((lv["rgb"] - 0.3) ** 2).mean() + lv["opacity"].mean() for lv in levels)
+    loss.backward()
+    assert all(lv["rgb"].dtype == torch.float32 for lv in levels)
+    assert bool(torch.isfinite(loss))
+    grads = torch.cat([p.grad.reshape(-1) for p in f.parameters()])
+    assert bool(torch.isfinite(grads).all()) and float(grads.abs().sum()) > 0
+
+
+def test_band_annealing_follows_the_global_step_in_a_lightning_fit(tmp_path, one_thread) -> None:
+    import lightning.pytorch as pl
+
+    class Tiny(pl.LightningModule):
+        def __init__(self) -> None:
+            super().__init__()
+            self.field = NeRFField(depth=1, width=8, skip=-1, pos_bands=4, time_bands=2,
+                                   anneal_steps=8, colour_width=4)
+            self.seen: list[list[float]] = []
+
+        def training_step(self, batch, batch_idx):
+            self.seen.append(self.field.pos_enc.window.tolist())
+            sigma, rgb = self.field(batch[0], batch[1])
+            return sigma.mean() + rgb.mean()
+
+        def configure_optimizers(self):
+            return torch.optim.AdamW(self.field.param_groups(1e-3), weight_decay=0.1)
+
+    data = torch.utils.data.TensorDataset(torch.rand(16, 3), torch.rand(16, 1))
+    module = Tiny()
+    trainer = pl.Trainer(max_steps=5, logger=False, enable_checkpointing=False,
+                         enable_progress_bar=False, enable_model_summary=False,
+                         callbacks=module.field.callbacks(), default_root_dir=tmp_path,
+                         accelerator="cpu")
+    trainer.fit(module, torch.utils.data.DataLoader(data, batch_size=4))
+    assert len(module.seen) == 5
+    for step, window in enumerate(module.seen):
+        assert window == pytest.approx(band_window(4, step, 8), abs=1e-7)
