@@ -1,0 +1,1 @@
+"""Throughput and time-to-quality benchmarks (``make bench`` = ``python -m benchmarks``)."""
