@@ -1,0 +1,195 @@
+"""Held-out monitoring during training: accuracy-vs-time curve, TensorBoard, best checkpoint.
+
+Two kinds of evaluation, both on the held-out views of the segment:
+
+- *cheap* (every ``curve_every`` steps): PSNR on a fixed random subset of
+  ``curve_pixels`` pixels of every held-out view at three ground-truth times of the
+  segment (start, middle, end). SSIM/LPIPS need whole images and are left empty;
+- *full* (every ``eval_every`` steps and at the end): whole images of every held-out
+  view at those three times — PSNR, SSIM, LPIPS — plus TensorBoard images (render vs
+  ground truth, opacity, depth, the E(t0, t1) map of the last batch).
+
+Wall-clock is the training time only: time spent inside this callback is subtracted,
+so curves of different backbones compare training cost. Rows go to ``curve.csv``
+(``wall_s,step,psnr,ssim,lpips,kind``); a full evaluation that improves PSNR saves
+``checkpoints/best.ckpt``.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+
+from eventrecon.data.batcher import Segment, background_linear
+from eventrecon.data.types import SplitData, linear_to_srgb, srgb_to_linear
+
+__all__ = ["HeldOutMonitor"]
+
+log = logging.getLogger(__name__)
+
+
+class HeldOutMonitor(L.Callback):
+    """See module docstring.
+
+    Args:
+        split: the validation split (ground-truth frames and cameras).
+        segment: the segment being trained (its times are the ones evaluated).
+        out_dir: the segment's folder (``curve.csv`` and ``checkpoints/``).
+        curve_every, eval_every, image_every: intervals in steps (≤ 0 disables).
+        curve_pixels: pixels per view in a cheap evaluation.
+        chunk: rays per chunk for full images.
+        seed: picks the cheap-evaluation pixels.
+    """
+
+    def __init__(self, split: SplitData, segment: Segment, out_dir: Path, curve_every: int,
+                 eval_every: int, image_every: int, curve_pixels: int, chunk: int,
+                 seed: int = 0, wall_offset: float = 0.0) -> None:
+        self.split, self.segment, self.out_dir = split, segment, Path(out_dir)
+        self.curve_every, self.eval_every, self.image_every = curve_every, eval_every, image_every
+        self.chunk = chunk
+        times = np.asarray(split.frame_times, dtype=np.float64)
+        inside = np.flatnonzero((times >= segment.start) & (times <= segment.end))
+        if inside.size == 0:
+            inside = np.array([int(np.argmin(np.abs(times - segment.start)))])
+        pick = np.unique(inside[np.round(np.linspace(0, inside.size - 1, 3)).astype(int)])
+        self.frames = pick.tolist()
+        cams = split.cameras
+        g = torch.Generator().manual_seed(seed + 7)
+        n_pix = cams.height * cams.width
+        self.pix = torch.randperm(n_pix, generator=g)[: min(curve_pixels, n_pix)]
+        self.bg = background_linear(split)
+        self.best_psnr = -math.inf
+        self.wall = wall_offset
+        self._t_last: float | None = None
+        self.curve_path = self.out_dir / "curve.csv"
+
+    # -------------------------------------------------------------- wall clock
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        """On resume, forget curve rows written after the checkpoint being resumed."""
+        if not self.curve_path.exists():
+            return
+        step = int(trainer.global_step)
+        with self.curve_path.open(newline="") as f:
+            rows = list(csv.reader(f))
+        kept = rows[:1] + [r for r in rows[1:] if r and int(r[1]) <= step]
+        if len(kept) != len(rows):
+            with self.curve_path.open("w", newline="") as f:
+                csv.writer(f).writerows(kept)
+
+    def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule,
+                             batch: Any, batch_idx: int) -> None:
+        self._t_last = time.perf_counter()
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule,
+                           outputs: Any, batch: Any, batch_idx: int) -> None:
+        if self._t_last is not None:
+            self.wall += time.perf_counter() - self._t_last
+        step = int(trainer.global_step)
+        if self.eval_every > 0 and step % self.eval_every == 0:
+            self.evaluate(trainer, pl_module, full=True)
+        elif self.curve_every > 0 and step % self.curve_every == 0:
+            self.evaluate(trainer, pl_module, full=False)
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self.evaluate(trainer, pl_module, full=True)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"wall": self.wall, "best_psnr": self.best_psnr}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self.wall = state_dict.get("wall", 0.0)
+        self.best_psnr = state_dict.get("best_psnr", -math.inf)
+
+    # -------------------------------------------------------------- evaluation
+    @torch.no_grad()
+    def evaluate(self, trainer: L.Trainer, pl_module: L.LightningModule, full: bool) -> dict:
+        field, renderer = pl_module.field, pl_module.renderer
+        was_training = field.training
+        field.eval()
+        cams, step = self.split.cameras, int(trainer.global_step)
+        device = pl_module.device
+        preds, gts, extras = [], [], []
+        for f in self.frames:
+            t = float(self.segment.normalise(float(self.split.frame_times[f])))
+            t = min(1.0, max(0.0, t))
+            for v in range(len(cams)):
+                gt = srgb_to_linear(self.split.frames[f, v])
+                if full:
+                    res = renderer.render_image(field, cams, v, t, self.bg[v].to(device),
+                                                chunk=self.chunk)
+                    preds.append(res["rgb"].clamp(0, 1).cpu().numpy())
+                    gts.append(gt)
+                    extras.append(res)
+                else:
+                    preds.append(self._render_pixels(field, renderer, v, t, device))
+                    gts.append(gt.reshape(-1, 3)[self.pix.numpy()])
+        field.train(was_training)
+        enc = [linear_to_srgb(p).astype(np.float32) / 255 for p in preds]
+        gts_enc = [linear_to_srgb(g).astype(np.float32) / 255 for g in gts]
+        if full:
+            from eventrecon.metrics import evaluate_images
+            m = evaluate_images(enc, gts_enc, lpips=True)
+            row = {"psnr": m["psnr"], "ssim": m["ssim"], "lpips": m.get("lpips")}
+            self._log_images(trainer, pl_module, enc[0], gts_enc[0], extras[0], step)
+        else:
+            mse = float(np.mean([np.mean((p - g) ** 2) for p, g in zip(enc, gts_enc)]))
+            row = {"psnr": -10 * math.log10(max(mse, 1e-12)), "ssim": None, "lpips": None}
+        kind = "full" if full else "cheap"
+        self._append_curve(step, row, kind)
+        if trainer.logger is not None:
+            trainer.logger.log_metrics(
+                {f"val_{kind}/{k}": float(v) for k, v in row.items() if v is not None}, step)
+        if full and row["psnr"] > self.best_psnr:
+            self.best_psnr = row["psnr"]
+            trainer.save_checkpoint(str(self.out_dir / "checkpoints" / "best.ckpt"))
+        return row
+
+    def _render_pixels(self, field: Any, renderer: Any, v: int, t: float,
+                       device: torch.device) -> np.ndarray:
+        cams = self.split.cameras
+        uv = cams.pixel_grid()[self.pix]
+        o, d = cams.rays(torch.full((uv.shape[0],), v, dtype=torch.long), uv)
+        bg = self.bg[v].reshape(-1, 3)[self.pix]
+        tt = torch.full((uv.shape[0], 1), t)
+        levels = renderer(field, o.to(device), d.to(device), tt.to(device), bg.to(device),
+                          perturb=False)
+        return levels[-1]["rgb"].clamp(0, 1).cpu().numpy()
+
+    def _append_curve(self, step: int, row: dict, kind: str) -> None:
+        new = not self.curve_path.exists()
+        self.curve_path.parent.mkdir(parents=True, exist_ok=True)
+        with self.curve_path.open("a", newline="") as f:
+            w = csv.writer(f)
+            if new:
+                w.writerow(["wall_s", "step", "psnr", "ssim", "lpips", "kind"])
+            w.writerow([f"{self.wall:.3f}", step] +
+                       ["" if row[k] is None else f"{row[k]:.5f}" for k in ("psnr", "ssim", "lpips")]
+                       + [kind])
+
+    def _log_images(self, trainer: L.Trainer, pl_module: Any, pred: np.ndarray, gt: np.ndarray,
+                    res: dict, step: int) -> None:
+        exp = getattr(trainer.logger, "experiment", None)
+        if exp is None or not hasattr(exp, "add_image"):
+            return
+        if self.image_every <= 0 or (step % self.image_every and step != trainer.max_steps):
+            return
+        exp.add_image("heldout/render_vs_gt", np.concatenate([pred, gt], 1), step,
+                      dataformats="HWC")
+        exp.add_image("heldout/opacity", res["opacity"].cpu().numpy(), step, dataformats="HW")
+        depth = res["depth"].cpu().numpy()
+        exp.add_image("heldout/depth", depth / max(float(depth.max()), 1e-6), step,
+                      dataformats="HW")
+        batcher = pl_module.batcher
+        emap = batcher.events.window_all(batcher.segment.start, batcher.segment.end)[0]
+        emap = emap.float().cpu().numpy()
+        scale = max(float(np.abs(emap).max()), 1.0)
+        rgb = np.stack([np.clip(emap, 0, None), np.zeros_like(emap), np.clip(-emap, 0, None)], -1)
+        exp.add_image("train/events_view0_segment", rgb / scale, step, dataformats="HWC")

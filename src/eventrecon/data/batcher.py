@@ -1,0 +1,136 @@
+"""Training rays of one segment: the per-iteration batch of the method.
+
+Each call of :meth:`RayBatcher.sample` draws, with its own generator,
+
+1. a window ``(t0, t1)`` of the segment (normalised times, method.md "Per-iteration
+   sampling"), shared by all views;
+2. ``n_rays`` pixels split equally over the training views, per view a fraction
+   ``neg_ratio`` uniform over the image and the rest on pixels with ``E(t0, t1) ≠ 0``;
+3. a reference frame among the two nearest to ``t1`` and
+   ``E_ref→1 = V(t1) − V(t_ref)``;
+4. rays through the pixels jittered by ±0.5 px.
+
+All tensors live on the batcher's device; the generator makes the batch a pure
+function of ``(seed, step)``, so a resumed run sees the same batches.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from eventrecon.data import sampling
+from eventrecon.data.types import SplitData, srgb_to_linear
+from eventrecon.events.accumulate import DecayedEvents
+from eventrecon.events.bayer import bayer_mask_at
+from eventrecon.render.cameras import Cameras
+
+__all__ = ["RayBatcher", "Segment", "GREY_BACKGROUND_SRGB"]
+
+#: The constant background of the method when no background frame is given (sRGB 159/255).
+GREY_BACKGROUND_SRGB: int = 159
+
+
+@dataclass(frozen=True)
+class Segment:
+    """A time span ``[start, end]`` in time units; fields see ``(t − start) / (end − start)``."""
+
+    start: float
+    end: float
+
+    def normalise(self, t: Tensor | np.ndarray | float) -> Tensor | np.ndarray | float:
+        return (t - self.start) / (self.end - self.start)
+
+    def units(self, t_norm: Tensor | float) -> Tensor | float:
+        return self.start + t_norm * (self.end - self.start)
+
+
+def background_linear(split: SplitData) -> Tensor:
+    """``[V, H, W, 3]`` linear background: the split's frames, else constant grey."""
+    cams = split.cameras
+    if split.background is not None:
+        return torch.from_numpy(srgb_to_linear(split.background))
+    grey = float(srgb_to_linear(np.array([GREY_BACKGROUND_SRGB], np.uint8))[0])
+    return torch.full((len(cams), cams.height, cams.width, 3), grey)
+
+
+class RayBatcher:
+    """Samples the training batch of one segment (see module docstring).
+
+    Args:
+        split: the training split (events, frames, cameras, background).
+        segment: the time span trained.
+        decay: event decay ``b`` (1 = plain polarity sum).
+        bayer: whether event pixels are colour (RGGB) pixels.
+        neg_ratio: fraction of rays drawn uniformly over all pixels.
+        device: where the batch tensors live.
+    """
+
+    def __init__(self, split: SplitData, segment: Segment, decay: float, bayer: bool,
+                 neg_ratio: float = 0.9, device: str | torch.device = "cpu") -> None:
+        if split.events is None:
+            raise ValueError(f"{split.root}: events: the training split has no events/")
+        self.cameras: Cameras = split.cameras
+        self.segment = segment
+        self.neg_ratio = neg_ratio
+        self.bayer = bayer
+        self.device = torch.device(device)
+        H, W = self.cameras.height, self.cameras.width
+        self.events = DecayedEvents.from_streams(split.events, H, W, decay, device=self.device)
+        frame_times = np.asarray(split.frame_times, dtype=np.float64)
+        # Frames in (or nearest to) the segment serve as references.
+        inside = (frame_times >= segment.start) & (frame_times <= segment.end)
+        if not inside.any():
+            inside[np.argmin(np.abs(frame_times - 0.5 * (segment.start + segment.end)))] = True
+        idx = np.flatnonzero(inside)
+        self.frame_times = torch.from_numpy(frame_times[idx]).to(self.device)  # time units
+        self.frames = torch.from_numpy(srgb_to_linear(split.frames[idx])).to(self.device)
+        self.background = background_linear(split).to(self.device)
+
+    @property
+    def n_views(self) -> int:
+        return len(self.cameras)
+
+    def sample(self, n_rays: int, gen: torch.Generator) -> dict[str, Tensor]:
+        """One training batch of ``N = n_rays`` rays.
+
+        Returns:
+            dict with ``rays_o, rays_d [N,3]``, ``view, row, col [N]``, ``t0, t1, t_ref
+            [N,1]`` (normalised), ``events [N]`` = E(t0,t1), ``events_ref [N]`` =
+            V(t1) − V(t_ref), ``ref_rgb [N,3]`` (or ``[N]`` raw), ``bg [N,3]``,
+            ``mask [N,3]`` (Bayer one-hot) or ``None`` for grey event pixels.
+        """
+        seg, H, W = self.segment, self.cameras.height, self.cameras.width
+        t0, t1 = sampling.sample_window(gen)
+        t0u, t1u = float(seg.units(t0)), float(seg.units(t1))
+        counts = sampling.rays_per_view(n_rays, self.n_views, gen)
+        event_map = self.events.window_all(t0u, t1u) != 0  # [V, H, W]
+        view, row, col = sampling.sample_pixels(event_map, counts, self.neg_ratio, gen)
+        pix = (view * H + row) * W + col
+        n = pix.shape[0]
+        t0_full = torch.full((n,), t0u, dtype=torch.float64, device=self.device)
+        t1_full = torch.full((n,), t1u, dtype=torch.float64, device=self.device)
+        events = self.events.window(pix, t0_full, t1_full)
+        ref = sampling.pick_reference(self.frame_times, t1u, gen)
+        t_ref_u = float(self.frame_times[ref])
+        events_ref = self.events.window(pix, torch.full_like(t1_full, t_ref_u), t1_full)
+        uv = torch.stack([col, row], -1).double()
+        uv = sampling.jitter(uv, gen)
+        o, d = self.cameras.rays(view.cpu(), uv.cpu())
+        # Colour event pixels see one channel; grey event pixels see the channel mean
+        # (mask None, see eventrecon.losses.event_channels).
+        mask = bayer_mask_at(row, col).float() if self.bayer else None
+        return {
+            "rays_o": o.to(self.device), "rays_d": d.to(self.device),
+            "view": view, "row": row, "col": col,
+            "t0": torch.full((n, 1), float(t0), device=self.device),
+            "t1": torch.full((n, 1), float(t1), device=self.device),
+            "t_ref": torch.full((n, 1), float(seg.normalise(t_ref_u)), device=self.device),
+            "events": events.float(), "events_ref": events_ref.float(),
+            "ref_rgb": self.frames[ref, view, row, col],
+            "bg": self.background[view, row, col],
+            "mask": mask,
+        }

@@ -1,0 +1,180 @@
+"""The LightningModule: one training step = sample a window, render, compute the losses.
+
+Per step (method.md "Per-iteration sampling"):
+
+1. ``batch = batcher.sample(n_rays, gen)`` with ``gen`` seeded by ``(seed, step)`` — the
+   batch is a pure function of the step, so a resumed run replays the same batches;
+2. every ray is rendered at three times ``t0, t1, t_ref`` in one renderer call (the
+   rays stacked ``[3N]``), coarse and fine levels by ONE field;
+3. :func:`eventrecon.losses.total_loss` sums L_event, L_acc, L_rgb and the ramped
+   L_sparsity over both levels; the field's own regulariser (e.g. TV) is added.
+
+A non-finite loss skips the step (``training_step`` returns ``None``, so no backward and
+no optimiser step), is logged as ``train/nonfinite_steps``, and ``max_nonfinite`` in a row
+stop the run with a checkpoint and a one-line reason.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+from torch import Tensor
+
+from eventrecon.data.batcher import RayBatcher
+from eventrecon.fields.base import Field
+from eventrecon.losses import LossConfig, total_loss
+from eventrecon.render.volume import Renderer
+
+__all__ = ["EventNeRFModule", "StepConfig", "NonFiniteLossError", "step_generator"]
+
+log = logging.getLogger(__name__)
+
+
+class NonFiniteLossError(RuntimeError):
+    """Raised after ``max_nonfinite`` consecutive non-finite losses."""
+
+
+@dataclass
+class StepConfig:
+    """Per-step settings of a run (from ``cfg.trainer`` and ``cfg.model.optim``)."""
+
+    n_rays: int = 256
+    lr: float = 1e-4
+    weight_decay: float = 0.0
+    max_nonfinite: int = 20
+    log_every: int = 25
+    seed: int = 0
+
+
+def step_generator(seed: int, step: int, stream: int = 0) -> torch.Generator:
+    """A CPU generator determined by ``(seed, step, stream)`` (SplitMix-style mixing)."""
+    x = (seed * 0x9E3779B97F4A7C15 + step * 0xBF58476D1CE4E5B9 + stream * 0x94D049BB133111EB)
+    return torch.Generator().manual_seed(x & ((1 << 63) - 1))
+
+
+class EventNeRFModule(L.LightningModule):
+    """Trains one :class:`~eventrecon.fields.base.Field` on one segment.
+
+    Args:
+        field: the representation backbone.
+        renderer: the volume renderer (holds the clipping cylinder and ``clip_scale``).
+        batcher: draws the training batch of the segment.
+        loss: loss weights, ε and θ.
+        step: rays per step, optimiser and guard settings.
+    """
+
+    def __init__(self, field: Field, renderer: Renderer, batcher: RayBatcher,
+                 loss: LossConfig, step: StepConfig) -> None:
+        super().__init__()
+        self.field = field
+        self.renderer = renderer
+        self.batcher = batcher
+        self.loss_cfg = loss
+        self.step_cfg = step
+        self.nonfinite_in_row = 0
+        self.nonfinite_total = 0
+        self.stop_reason: str | None = None
+
+    # ------------------------------------------------------------------ optimiser
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        """AdamW over the field's parameter groups (re-run by growth schedules)."""
+        groups = self.field.param_groups(self.step_cfg.lr)
+        return torch.optim.AdamW(groups, lr=self.step_cfg.lr,
+                                 weight_decay=self.step_cfg.weight_decay)
+
+    # ------------------------------------------------------------------ training
+    def render_three(self, batch: dict[str, Tensor], gen: torch.Generator | None,
+                     perturb: bool = True) -> list[dict[str, Tensor]]:
+        """Render each ray at ``t0, t1, t_ref``; per level a dict of ``[N, ...]`` outputs
+        with keys ``rgb_t0, rgb_t1, rgb_ref, opacity_t0, opacity_t1, opacity_ref``."""
+        n = batch["rays_o"].shape[0]
+        o = batch["rays_o"].repeat(3, 1)
+        d = batch["rays_d"].repeat(3, 1)
+        t = torch.cat([batch["t0"], batch["t1"], batch["t_ref"]], 0)
+        bg = batch["bg"].repeat(3, 1)
+        levels = self.renderer(self.field, o, d, t, bg, perturb=perturb, gen=gen)
+        out = []
+        for lv in levels:
+            rgb, opa = lv["rgb"].split(n), lv["opacity"].split(n)
+            out.append({"rgb_t0": rgb[0], "rgb_t1": rgb[1], "rgb_ref": rgb[2],
+                        "opacity_t0": opa[0], "opacity_t1": opa[1], "opacity_ref": opa[2]})
+        return out
+
+    def training_step(self, _: Any, batch_idx: int) -> Tensor | None:
+        step = int(self.global_step)
+        gen = step_generator(self.step_cfg.seed, step)
+        batch = self.batcher.sample(self.step_cfg.n_rays, gen)
+        levels = self.render_three(batch, gen)
+        terms = total_loss(levels, batch, self.loss_cfg, step)
+        loss = terms["loss"]
+        reg = self.field.regularization()
+        if reg is not None:
+            terms["regularization"] = reg
+            loss = loss + reg
+        if not bool(torch.isfinite(loss)):
+            return self._skip_nonfinite(step, terms)
+        self.nonfinite_in_row = 0
+        if step % max(1, self.step_cfg.log_every) == 0:
+            for k, v in terms.items():
+                self.log(f"train/{k}", v.detach(), on_step=True, on_epoch=False)
+            self.log("train/lr", self.trainer.optimizers[0].param_groups[0]["lr"],
+                     on_step=True, on_epoch=False)
+            self.log("train/clip_scale", float(self.renderer.clip_scale), on_step=True,
+                     on_epoch=False)
+        return loss
+
+    def _skip_nonfinite(self, step: int, terms: dict[str, Tensor]) -> None:
+        self.nonfinite_in_row += 1
+        self.nonfinite_total += 1
+        bad = [k for k, v in terms.items() if not bool(torch.isfinite(v))]
+        log.warning("step %d: non-finite loss (%s); step skipped (%d in a row)",
+                    step, ", ".join(bad), self.nonfinite_in_row)
+        self.log("train/nonfinite_steps", float(self.nonfinite_total), on_step=True,
+                 on_epoch=False)
+        if self.nonfinite_in_row >= self.step_cfg.max_nonfinite:
+            self.stop_reason = (f"{self.nonfinite_in_row} non-finite losses in a row at step "
+                                f"{step} ({', '.join(bad)}); stopped")
+            ckpt_dir = Path(self.trainer.default_root_dir) / "checkpoints"
+            self.trainer.save_checkpoint(str(ckpt_dir / "nonfinite-stop.ckpt"))
+            raise NonFiniteLossError(self.stop_reason)
+        return None
+
+    def train_dataloader(self) -> Any:
+        """Steps are drawn in :meth:`training_step`; the loader only counts them."""
+        return torch.utils.data.DataLoader(_StepCounter(), batch_size=None)
+
+    # ------------------------------------------------------------------ checkpoints
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint["eventrecon"] = {
+            "field_class": f"{type(self.field).__module__}.{type(self.field).__qualname__}",
+            "clip_scale": float(self.renderer.clip_scale),
+            "nonfinite_total": self.nonfinite_total,
+        }
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        meta = checkpoint.get("eventrecon", {})
+        mine = f"{type(self.field).__module__}.{type(self.field).__qualname__}"
+        if meta.get("field_class", mine) != mine:
+            raise ValueError(
+                f"checkpoint: field_class: expected {mine} (this run's model), "
+                f"got {meta['field_class']}")
+        self.renderer.clip_scale = meta.get("clip_scale", self.renderer.clip_scale)
+        self.nonfinite_total = meta.get("nonfinite_total", 0)
+        prepare = getattr(self.field, "prepare_state_dict", None)
+        if prepare is not None:  # backbones whose tensors grow during training
+            prepare(checkpoint["state_dict"], prefix="field.")
+
+
+class _StepCounter(torch.utils.data.IterableDataset):
+    """An endless stream of step indices (the batch itself is drawn in the module)."""
+
+    def __iter__(self):  # type: ignore[override]
+        i = 0
+        while True:
+            yield i
+            i += 1
