@@ -8,6 +8,10 @@
 The run reads top to bottom in :func:`eventrecon.runner.run`: data → field → module →
 callbacks → logger → trainer → fit → evaluate. Held-out PSNR / SSIM / LPIPS are printed
 at the end and saved to ``metrics.json`` in the run folder.
+
+Exit status: 0 done; 2 bad input (one line naming the file or config key and the
+expectation); 3 stopped by the non-finite-loss guard (one line, checkpoint kept). In a
+sweep (``-m``) a failing job writes ``metrics.json`` with ``status: failed`` instead.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ def _pick_trainer_preset(argv: list[str]) -> list[str]:
 @hydra.main(config_path="conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float | None:
     from eventrecon.errors import InputError
+    from eventrecon.module import NonFiniteLossError
     from eventrecon.runner import run
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
@@ -54,6 +59,11 @@ def main(cfg: DictConfig) -> float | None:
             return _record_failure(cfg, out_dir, e)
         log.error("%s", e)
         sys.exit(2)
+    except NonFiniteLossError as e:  # the guard stopped a diverging run (checkpoint kept)
+        if multirun:
+            return _record_failure(cfg, out_dir, e)
+        log.error("%s", e)
+        sys.exit(3)
     except Exception as e:  # noqa: BLE001 - a failed sweep job must not stop the sweep
         if multirun:
             log.exception("job failed")
@@ -71,9 +81,9 @@ def main(cfg: DictConfig) -> float | None:
 def _record_failure(cfg: DictConfig, out_dir: Path, err: BaseException) -> None:
     """Write ``metrics.json`` with ``status: failed`` so the report shows the failure."""
     from eventrecon.checkpointing import atomic_write_json
-    from eventrecon.runner import run_info
+    from eventrecon.runner import planned_run_info
 
-    info = run_info(cfg, {})
+    info = planned_run_info(cfg)
     atomic_write_json(out_dir / "metrics.json",
                       {**info, "status": "failed", "error": f"{type(err).__name__}: {err}"})
     log.error("job failed: %s", err)

@@ -335,10 +335,8 @@ def test_model_configs_compose(name, cls, checks):
     for key, val in checks.items():
         assert OmegaConf.to_container(cfg)[key] == val
     if "paper" not in name and "public" not in name:  # CPU presets build quickly
-        from hydra.utils import instantiate
-        kw = OmegaConf.to_container(cfg)
-        kw.pop("optim")
-        f = instantiate(kw)
+        from eventrecon.runner import build_field
+        f = build_field(cfg)
         s, c = f(*_points(10, 0))
         assert s.shape == (10,) and c.shape == (10, 3)
 

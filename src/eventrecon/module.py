@@ -26,17 +26,29 @@ import torch
 from torch import Tensor
 
 from eventrecon.data.batcher import RayBatcher
+from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.losses import LossConfig, total_loss
 from eventrecon.render.volume import Renderer
 
-__all__ = ["EventNeRFModule", "StepConfig", "NonFiniteLossError", "step_generator"]
+__all__ = ["EventNeRFModule", "StepConfig", "NonFiniteLossError", "step_generator",
+           "field_class_name"]
 
 log = logging.getLogger(__name__)
 
 
 class NonFiniteLossError(RuntimeError):
-    """Raised after ``max_nonfinite`` consecutive non-finite losses."""
+    """Raised after ``max_nonfinite`` consecutive non-finite losses (one-line message)."""
+
+
+def field_class_name(field: Field) -> str:
+    """``module.QualName`` of a field, as recorded in checkpoints (``eventrecon.field_class``).
+
+    >>> from eventrecon.fields.nerf import NeRFField
+    >>> field_class_name(NeRFField(depth=2, width=8, skip=-1, pos_bands=2, time_bands=1))
+    'eventrecon.fields.nerf.NeRFField'
+    """
+    return f"{type(field).__module__}.{type(field).__qualname__}"
 
 
 @dataclass
@@ -119,7 +131,8 @@ class EventNeRFModule(L.LightningModule):
         if not bool(torch.isfinite(loss)):
             return self._skip_nonfinite(step, terms)
         self.nonfinite_in_row = 0
-        if step % max(1, self.step_cfg.log_every) == 0:
+        # Lightning writes logged values at the end of steps with (step + 1) % every == 0
+        if (step + 1) % max(1, self.step_cfg.log_every) == 0:
             for k, v in terms.items():
                 self.log(f"train/{k}", v.detach(), on_step=True, on_epoch=False)
             self.log("train/lr", self.trainer.optimizers[0].param_groups[0]["lr"],
@@ -137,10 +150,10 @@ class EventNeRFModule(L.LightningModule):
         self.log("train/nonfinite_steps", float(self.nonfinite_total), on_step=True,
                  on_epoch=False)
         if self.nonfinite_in_row >= self.step_cfg.max_nonfinite:
+            ckpt = Path(self.trainer.default_root_dir) / "checkpoints" / "nonfinite-stop.ckpt"
             self.stop_reason = (f"{self.nonfinite_in_row} non-finite losses in a row at step "
-                                f"{step} ({', '.join(bad)}); stopped")
-            ckpt_dir = Path(self.trainer.default_root_dir) / "checkpoints"
-            self.trainer.save_checkpoint(str(ckpt_dir / "nonfinite-stop.ckpt"))
+                                f"{step} ({', '.join(bad)}); stopped, checkpoint {ckpt}")
+            self.trainer.save_checkpoint(str(ckpt))
             raise NonFiniteLossError(self.stop_reason)
         return None
 
@@ -151,18 +164,18 @@ class EventNeRFModule(L.LightningModule):
     # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint["eventrecon"] = {
-            "field_class": f"{type(self.field).__module__}.{type(self.field).__qualname__}",
+            "field_class": field_class_name(self.field),
             "clip_scale": float(self.renderer.clip_scale),
             "nonfinite_total": self.nonfinite_total,
         }
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         meta = checkpoint.get("eventrecon", {})
-        mine = f"{type(self.field).__module__}.{type(self.field).__qualname__}"
-        if meta.get("field_class", mine) != mine:
-            raise ValueError(
-                f"checkpoint: field_class: expected {mine} (this run's model), "
-                f"got {meta['field_class']}")
+        mine = field_class_name(self.field)
+        if meta.get("field_class", mine) != mine:  # runner.check_checkpoint catches it first
+            where = getattr(self._trainer, "ckpt_path", None) or "checkpoint"
+            raise InputError(where, "eventrecon.field_class",
+                             f"a checkpoint of {mine} (this run's model)", meta["field_class"])
         self.renderer.clip_scale = meta.get("clip_scale", self.renderer.clip_scale)
         self.nonfinite_total = meta.get("nonfinite_total", 0)
         prepare = getattr(self.field, "prepare_state_dict", None)

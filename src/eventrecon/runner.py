@@ -10,6 +10,7 @@ held-out views at every ground-truth time, cross-fading segments, and writes
 
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 import resource
@@ -30,12 +31,12 @@ from eventrecon.data.types import Dataset, SplitData
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.losses import LossConfig
-from eventrecon.module import EventNeRFModule, StepConfig
+from eventrecon.module import EventNeRFModule, StepConfig, field_class_name
 from eventrecon.render.volume import Renderer
 from eventrecon.segments import resolve_segments
 
 __all__ = ["run", "load_dataset", "build_field", "build_renderer", "select_views",
-           "select_fps", "evaluate_run", "run_info"]
+           "select_fps", "evaluate_run", "run_info", "planned_run_info", "check_checkpoint"]
 
 log = logging.getLogger(__name__)
 
@@ -97,13 +98,21 @@ def build_field(model_cfg: DictConfig) -> Field:
     target = kwargs.pop("_target_", None)
     kwargs.pop("optim", None)
     kwargs.pop("name", None)
+    expect = "an importable Field class (e.g. eventrecon.fields.nerf.NeRFField)"
     if not target:
-        raise InputError("config", "model._target_", "a Field class path")
+        raise InputError("config", "model._target_", expect, "nothing")
+    module, _, name = str(target).rpartition(".")
     try:
-        cls = get_class(target)
-    except Exception as e:  # noqa: BLE001 - Hydra wraps import errors
-        raise NotImplementedError(f"model: {target} is not implemented yet ({e})") from None
-    return cls(**kwargs)
+        cls = getattr(importlib.import_module(module), name) if module else None
+    except (ImportError, AttributeError) as e:
+        raise InputError("config", "model._target_", expect,
+                         f"{target} ({type(e).__name__}: {e})") from None
+    if not (isinstance(cls, type) and issubclass(cls, Field)):
+        raise InputError("config", "model._target_", expect, target)
+    try:
+        return cls(**kwargs)
+    except TypeError as e:  # an argument the class does not take (`+model.foo=1`)
+        raise InputError("config", "model", f"the arguments of {target}", str(e)) from None
 
 
 def build_renderer(cfg: DictConfig, meta: dict) -> Renderer:
@@ -139,6 +148,35 @@ def run_info(cfg: DictConfig, meta: dict, views: int | None = None,
             "views": views if views is not None else cfg.data.views,
             "fps": fps if fps is not None else (cfg.data.fps or meta.get("rgb_fps")),
             "experiment": cfg.get("sweep_name"), "tag": cfg.get("tag")}
+
+
+def planned_run_info(cfg: DictConfig) -> dict[str, Any]:
+    """:func:`run_info` of a run that may have failed before reading its data.
+
+    For the ``status: failed`` record of a sweep job: the identity is what the finished
+    run would have written (same ``views`` and ``fps``), so the report puts the failure in
+    the right cell. Reads only the dataset's ``meta.json`` and counts its training poses
+    when the dataset is on disk; otherwise falls back to the scene config.
+    """
+    root: Path | None = None
+    meta: dict = {}
+    try:
+        if cfg.data.root:
+            root = Path(cfg.data.root)
+        else:
+            from eventrecon.sim.pipeline import dataset_path
+
+            root = dataset_path(cfg.scene, cfg.data_dir)
+        meta = json.loads((root / "meta.json").read_text())
+    except Exception:  # noqa: BLE001 - best effort: the run may have failed on this very input
+        if not cfg.data.root:
+            meta = {"rgb_fps": cfg.scene.get("rgb_fps")}
+    views = cfg.data.views
+    if views is None and root is not None:
+        views = len(list((root / "train" / "pose").glob("*.txt"))) or None
+    if views is None and not cfg.data.root:
+        views = (cfg.scene.get("rig") or {}).get("n_train")
+    return run_info(cfg, meta, views=views, fps=cfg.data.fps or meta.get("rgb_fps"))
 
 
 def merge_curves(seg_dirs: list[Path], out: Path) -> None:
@@ -218,11 +256,37 @@ def train_segment(cfg: DictConfig, ds: Dataset, train: SplitData, heldout: Split
     elif cfg.ckpt_path:
         ckpt = str(cfg.ckpt_path)
     if ckpt:
+        check_checkpoint(ckpt, field)
         log.info("segment %d: resuming from %s", k, ckpt)
     t = time.perf_counter()
     trainer.fit(module, ckpt_path=ckpt)
     wall = monitor.wall - wall_offset if monitor is not None else time.perf_counter() - t
     return module, wall
+
+
+def check_checkpoint(path: str | Path, field: Field) -> None:
+    """Raise :class:`InputError` unless ``path`` is a readable checkpoint of ``field``'s class.
+
+    Runs before ``trainer.fit(ckpt_path=...)`` so that a missing, corrupt or foreign
+    checkpoint (another backbone's) is one line naming the file, not a traceback from
+    Lightning's state-dict loading. The file is memory-mapped, not read.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("config", "ckpt_path", "an existing checkpoint file or 'last'", path)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False, mmap=True)
+    except Exception as e:  # noqa: BLE001 - zip, pickle and I/O errors alike
+        first = str(e).splitlines()[0] if str(e) else ""
+        raise InputError(path, "<file>", "a checkpoint readable by torch.load",
+                         f"{type(e).__name__}: {first}") from None
+    if not isinstance(state, dict) or "state_dict" not in state:
+        raise InputError(path, "state_dict", "a Lightning checkpoint", "missing")
+    mine = field_class_name(field)
+    theirs = (state.get("eventrecon") or {}).get("field_class", mine)
+    if theirs != mine:
+        raise InputError(path, "eventrecon.field_class",
+                         f"a checkpoint of {mine} (this run's model)", theirs)
 
 
 def _peak_mem_mb() -> float:

@@ -1,0 +1,208 @@
+"""Bad configuration and scene input: one line naming the key and the expectation.
+
+In-process cases go through :func:`eventrecon.runner.run` with the composed Hydra config
+(exactly what ``train.py`` calls) and must raise :class:`InputError` whose message is a
+single line matching ``<where>: <key>: expected <expectation>, got <value>``. A few cases
+go through ``python train.py`` to check what a user sees: exit status 2 and one
+``[ERROR]`` line, no traceback (Hydra's own strict-mode errors exit with 1 and name the
+key or list the valid choices). Together with ``test_bad_input.py`` (dataset files).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from eventrecon import runner
+from eventrecon.errors import InputError
+from eventrecon.module import EventNeRFModule
+from eventrecon.sim.pipeline import ensure_dataset
+from tests.integration import TINY, TINY_NERF, tiny_config
+
+ROOT = Path(__file__).resolve().parents[1]
+FAST = ["trainer.max_steps=4", "evaluate=false"]
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("data")
+    ensure_dataset(tiny_config(path).scene, path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def nerf_ckpt(data_dir: Path, tmp_path_factory) -> Path:
+    """``last.ckpt`` of a 4-step tiny NeRF run."""
+    out = tmp_path_factory.mktemp("nerf_run")
+    runner.run(tiny_config(data_dir, *FAST), out)
+    return out / "seg0" / "checkpoints" / "last.ckpt"
+
+
+def _raises_one_line(cfg, out: Path, pattern: str) -> InputError:
+    with pytest.raises(InputError, match=pattern) as err:
+        runner.run(cfg, out)
+    assert "\n" not in str(err.value)
+    return err.value
+
+
+# overrides -> the message it must give (regex, searched)
+CASES = {
+    "misspelt_effect": (["scene.events=[{name:shot_nois,rate_hz:1}]"],
+                        r"^scene spheres: events\[0\]\.name: expected one of bandwidth, bayer, "
+                        r"hot_pixels, leak, refractory, shot_noise, threshold_mismatch, "
+                        r"threshold_noise, timestamp_jitter, got 'shot_nois'$"),
+    "unknown_effect_param": (["scene.events=[{name:shot_noise,rate:1}]"],
+                             r"events\[0\]\.rate: expected a parameter of shot_noise \(rate_hz"),
+    "threshold_zero": (["scene.threshold=0"],
+                       r"^scene spheres: threshold: expected a contrast threshold > 0, got 0\.0$"),
+    "threshold_negative": (["scene.threshold=-0.2"], r"threshold: expected a contrast threshold"),
+    "negative_shot_noise": (["scene.events=[{name:shot_noise,rate_hz:-1}]"],
+                            r"events\[0\]\.rate_hz: expected a rate ≥ 0 Hz per pixel, "
+                            r"got -1\.0$"),
+    "negative_leak": (["scene.events=[{name:leak,rate_hz:-0.5}]"],
+                      r"events\[0\]\.rate_hz: expected a rate ≥ 0 Hz"),
+    "negative_refractory": (["scene.events=[{name:refractory,period_s:-0.001}]"],
+                            r"events\[0\]\.period_s: expected a period ≥ 0 s, got -0\.001$"),
+    "hot_fraction_above_1": (["scene.events=[{name:hot_pixels,fraction:1.5,rate_hz:10}]"],
+                             r"events\[0\]\.fraction: expected a fraction, got 1\.5$"),
+    "decay_above_1": (["scene.decay=1.5"], r"decay: expected a decay in \(0, 1\], got 1\.5$"),
+    "unknown_model_target": (["model._target_=foo.Bar"],
+                             r"^config: model\._target_: expected an importable Field class .*"
+                             r"got foo\.Bar \(ModuleNotFoundError: No module named 'foo'\)$"),
+    "misspelt_model_class": (["model._target_=eventrecon.fields.nerf.NeRFFeld"],
+                             r"model\._target_: .*got eventrecon\.fields\.nerf\.NeRFFeld "
+                             r"\(AttributeError"),
+    "model_not_a_field": (["model._target_=torch.nn.Linear"],
+                          r"model\._target_: expected an importable Field class .*"
+                          r"got torch\.nn\.Linear$"),
+    "unknown_model_argument": (["+model.foo=1"],
+                               r"^config: model: expected the arguments of "
+                               r"eventrecon\.fields\.nerf\.NeRFField, got .*'foo'$"),
+    "views_too_many": (["data.views=99"],
+                       r"^config: data\.views: expected an integer in \[1, 6\] "
+                       r"\(views in the dataset\), got 99$"),
+    "views_zero": (["data.views=0"], r"data\.views: expected an integer in \[1, 6\]"),
+    "fps_above_dataset": (["data.fps=50"],
+                          r"^config: data\.fps: expected at most the dataset's 5 FPS, got 50"),
+    "fps_zero": (["data.fps=0"], r"data\.fps: expected a positive frame rate, got 0"),
+    "root_missing": (["data.root=/nonexistent/scene"],
+                     r"^/nonexistent/scene: <folder>: expected an existing scene folder"),
+    "ckpt_missing": (["ckpt_path=/nonexistent/x.ckpt"],
+                     r"^config: ckpt_path: expected an existing checkpoint file or 'last', "
+                     r"got /nonexistent/x\.ckpt$"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_bad_config_value_is_one_line(case: str, data_dir: Path, tmp_path: Path):
+    overrides, pattern = CASES[case]
+    _raises_one_line(tiny_config(data_dir, *FAST, *overrides), tmp_path, pattern)
+
+
+def test_checkpoint_of_another_backbone(nerf_ckpt: Path, data_dir: Path, tmp_path: Path):
+    cfg = tiny_config(data_dir, *FAST, "model=hexplane", f"ckpt_path={nerf_ckpt}", base=TINY)
+    err = _raises_one_line(cfg, tmp_path, r"eventrecon\.field_class")
+    assert str(err) == (f"{nerf_ckpt}: eventrecon.field_class: expected a checkpoint of "
+                        "baselines.hexplane.HexPlaneField (this run's model), got "
+                        "eventrecon.fields.nerf.NeRFField")
+    assert not (tmp_path / "seg0" / "checkpoints").exists() or not any(
+        (tmp_path / "seg0" / "checkpoints").iterdir())  # nothing was trained or saved
+
+
+def test_module_refuses_foreign_checkpoint_even_without_the_runner(nerf_ckpt: Path,
+                                                                   data_dir: Path):
+    """The module's own guard (``on_load_checkpoint``) for paths that skip the runner."""
+    import torch
+
+    cfg = tiny_config(data_dir, "model=tensorf_cp", base=TINY)
+    ds = runner.load_dataset(cfg)
+    seg = runner.resolve_segments(None, None)[0]
+    from eventrecon.data.batcher import RayBatcher
+    from eventrecon.module import StepConfig
+
+    mod = EventNeRFModule(runner.build_field(cfg.model), runner.build_renderer(cfg, ds.meta),
+                          RayBatcher(ds.splits["train"], seg, 1.0, bool(ds.meta["bayer"])),
+                          runner.loss_config(cfg, ds.meta), StepConfig())
+    state = torch.load(nerf_ckpt, map_location="cpu", weights_only=False)
+    with pytest.raises(InputError, match=r"^checkpoint: eventrecon\.field_class: expected a "
+                                         r"checkpoint of baselines\.tensorf_cp\.TensoRFCPField"):
+        mod.on_load_checkpoint(state)
+
+
+def test_truncated_checkpoint(nerf_ckpt: Path, data_dir: Path, tmp_path: Path):
+    bad = tmp_path / "half.ckpt"
+    data = nerf_ckpt.read_bytes()
+    bad.write_bytes(data[: len(data) // 2])
+    cfg = tiny_config(data_dir, *FAST, f"ckpt_path={bad}")
+    _raises_one_line(cfg, tmp_path / "run",
+                     rf"^{re.escape(str(bad))}: <file>: expected a checkpoint readable by "
+                     r"torch\.load, got ")
+
+
+def test_checkpoint_that_is_not_a_lightning_checkpoint(data_dir: Path, tmp_path: Path):
+    import torch
+
+    bad = tmp_path / "weights.ckpt"
+    torch.save({"weights": torch.zeros(3)}, bad)
+    cfg = tiny_config(data_dir, *FAST, f"ckpt_path={bad}")
+    _raises_one_line(cfg, tmp_path / "run",
+                     rf"^{re.escape(str(bad))}: state_dict: expected a Lightning checkpoint, "
+                     r"got missing$")
+
+
+# ------------------------------------------------------------------ through `python train.py`
+def _train_py(*overrides: str, data_dir: Path, run_dir: Path,
+              base: list[str] = TINY + TINY_NERF) -> tuple[int, str]:
+    cmd = [sys.executable, str(ROOT / "train.py"), *base, *FAST,
+           f"data_dir={data_dir}", f"hydra.run.dir={run_dir}", *overrides]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "EVENTRECON_OFFLINE": "1"}
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    return proc.returncode, proc.stdout + proc.stderr
+
+
+@pytest.mark.parametrize("override, line", [
+    ("scene.threshold=0", "scene spheres: threshold: expected a contrast threshold > 0, got 0.0"),
+    ("scene.events=[{name:refractory,period_s:-1}]",
+     "scene spheres: events[0].period_s: expected a period ≥ 0 s, got -1.0"),
+])
+def test_train_py_prints_one_error_line_and_exits_2(override: str, line: str, data_dir: Path,
+                                                   tmp_path: Path):
+    rc, out = _train_py(override, data_dir=data_dir, run_dir=tmp_path)
+    assert rc == 2, out[-2000:]
+    assert "Traceback" not in out
+    errors = [ln for ln in out.splitlines() if "[ERROR]" in ln]
+    assert len(errors) == 1 and errors[0].endswith(line)
+
+
+def test_train_py_foreign_checkpoint(nerf_ckpt: Path, data_dir: Path, tmp_path: Path):
+    rc, out = _train_py("model=hexplane", f"ckpt_path={nerf_ckpt}", data_dir=data_dir,
+                        run_dir=tmp_path, base=TINY)
+    assert rc == 2, out[-2000:]
+    assert "Traceback" not in out
+    errors = [ln for ln in out.splitlines() if "[ERROR]" in ln]
+    assert len(errors) == 1
+    assert errors[0].endswith(f"{nerf_ckpt}: eventrecon.field_class: expected a checkpoint of "
+                              "baselines.hexplane.HexPlaneField (this run's model), got "
+                              "eventrecon.fields.nerf.NeRFField")
+
+
+@pytest.mark.parametrize("override, must_contain", [
+    ("trainer.max_stepz=3", ["Could not override 'trainer.max_stepz'",
+                             "Key 'max_stepz' is not in struct"]),
+    ("loss=no_evnt", ["Could not find 'loss/no_evnt'", "Available options in 'loss':",
+                      "\tno_event\n", "\tonly_rgb\n"]),
+    ("model=hexplan", ["Could not find 'model/hexplan'", "\thexplane\n"]),
+])
+def test_hydra_strict_mode_names_the_key_or_lists_choices(override: str, must_contain: list,
+                                                           tmp_path: Path):
+    rc, out = _train_py(override, data_dir=tmp_path / "unused", run_dir=tmp_path)
+    assert rc == 1
+    assert "Traceback" not in out
+    for text in must_contain:
+        assert text in out
+    assert not (tmp_path / "unused").exists()  # failed before any simulation
