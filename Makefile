@@ -30,10 +30,12 @@ test-all: install
 	$(PY) -m pytest -q $(ARGS)
 
 lint: install
-	$(PY) -m ruff check src baselines tests train.py || $(PIP) install -q ruff && $(PY) -m ruff check src baselines tests train.py
+	$(PY) -m ruff check src baselines benchmarks tests train.py
 
+# single runs (outputs/) and sweeps (multirun/) side by side
 tensorboard: install
-	$(VENV)/bin/tensorboard --logdir outputs --logdir_spec "" 2>/dev/null || $(VENV)/bin/tensorboard --logdir outputs
+	mkdir -p outputs multirun
+	$(VENV)/bin/tensorboard --logdir_spec runs:outputs,sweeps:multirun
 
 bench: install
 	$(PY) -m benchmarks $(ARGS)

@@ -26,6 +26,8 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
+import eventrecon  # noqa: F401 - registers the config resolvers (${of_run:...})
+
 log = logging.getLogger("eventrecon.train")
 
 
@@ -47,9 +49,10 @@ def main(cfg: DictConfig) -> float | None:
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN
     done = out_dir / "metrics.json"
-    if multirun and done.exists():
+    if multirun and done.exists() and cfg.data.segment is None:
         previous = json.loads(done.read_text())
-        if previous.get("status") == "ok":
+        if (previous.get("status") == "ok"
+                and int(previous.get("max_steps", -1)) == int(cfg.trainer.max_steps)):
             log.info("%s: finished before, skipped", out_dir)
             return previous.get("psnr")
     try:
@@ -69,6 +72,10 @@ def main(cfg: DictConfig) -> float | None:
             log.exception("job failed")
             return _record_failure(cfg, out_dir, e)
         raise
+    if metrics["status"] == "partial":
+        log.info("segment %s trained; the run is evaluated once segments %s are trained too",
+                 cfg.data.segment, metrics["missing_segments"])
+        return None
     lp = metrics.get("lpips")
     lp_txt = f"{lp:.4f}" if lp is not None else f"unavailable ({metrics.get('lpips_note')})"
     log.info("held-out %s: PSNR %.3f dB  SSIM %.4f  LPIPS %s  (%d steps, %.1f s training, %s)",

@@ -162,7 +162,7 @@ class HashEncoding(nn.Module):
         feats = []
         for idx, w in fn(u):  # dense levels are the coarse ones: they come first
             feat = _WeightedGather.apply(self.table, idx.flatten(0, 1), w.flatten(0, 1))
-            feats.append(feat.reshape(u.shape[0], -1))
+            feats.append(feat.reshape(u.shape[0], idx.shape[1] * self.n_features))
         return torch.cat(feats, dim=1)
 
 

@@ -24,7 +24,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Literal
 
-import torch
 from torch import Tensor
 
 from baselines.factorised import FactorisedField
@@ -34,6 +33,7 @@ from baselines.heads import DensityActivation
 class TensoRFCPField(FactorisedField):
     """TensoRF-CP 4D field; see the module docstring for the maths.
 
+    >>> import torch
     >>> f = TensoRFCPField(rank=2, resolution_init=(4, 4, 4, 4), resolution_final=(8, 8, 8, 6))
     >>> sigma, rgb = f(torch.zeros(5, 3), torch.full((5, 1), 0.5))
     >>> tuple(sigma.shape), tuple(rgb.shape), [tuple(p.shape) for p in f.grids.factors]

@@ -17,12 +17,11 @@ import sys
 from pathlib import Path
 
 import pytest
+from integration import TINY, TINY_NERF, tiny_config
 
 from eventrecon import runner
 from eventrecon.errors import InputError
-from eventrecon.module import EventNeRFModule
 from eventrecon.sim.pipeline import ensure_dataset
-from tests.integration import TINY, TINY_NERF, tiny_config
 
 ROOT = Path(__file__).resolve().parents[1]
 FAST = ["trainer.max_steps=4", "evaluate=false"]
@@ -122,12 +121,7 @@ def test_module_refuses_foreign_checkpoint_even_without_the_runner(nerf_ckpt: Pa
     cfg = tiny_config(data_dir, "model=tensorf_cp", base=TINY)
     ds = runner.load_dataset(cfg)
     seg = runner.resolve_segments(None, None)[0]
-    from eventrecon.data.batcher import RayBatcher
-    from eventrecon.module import StepConfig
-
-    mod = EventNeRFModule(runner.build_field(cfg.model), runner.build_renderer(cfg, ds.meta),
-                          RayBatcher(ds.splits["train"], seg, 1.0, bool(ds.meta["bayer"])),
-                          runner.loss_config(cfg, ds.meta), StepConfig())
+    mod = runner.build_module(cfg, runner.scene_properties(cfg, ds), ds.splits["train"], seg)
     state = torch.load(nerf_ckpt, map_location="cpu", weights_only=False)
     with pytest.raises(InputError, match=r"^checkpoint: eventrecon\.field_class: expected a "
                                          r"checkpoint of baselines\.tensorf_cp\.TensoRFCPField"):

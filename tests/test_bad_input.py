@@ -10,15 +10,15 @@ from __future__ import annotations
 import json
 import re
 import shutil
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pytest
+from test_layout import write_split
 
 from eventrecon.data.layout import read_dataset, read_split
 from eventrecon.errors import InputError
-from test_layout import write_split
 
 
 def _npz(path: Path, **changes) -> None:

@@ -9,10 +9,15 @@ import pytest
 import torch
 from torch import Tensor, nn
 
-from baselines import (CylinderAnneal, GrowthPlan, HexPlaneField, NGPField, TensoRFCPField)
+from baselines import CylinderAnneal, GrowthPlan, HexPlaneField, NGPField, TensoRFCPField
 from baselines.factorised import FactorisedField
-from baselines.grids import (geometric_resolutions, sample_grid, sample_grid_reference,
-                             total_variation, upsample_grid)
+from baselines.grids import (
+    geometric_resolutions,
+    sample_grid,
+    sample_grid_reference,
+    total_variation,
+    upsample_grid,
+)
 from baselines.hexplane import PAIRS
 
 CONF = Path(__file__).resolve().parents[1] / "conf"

@@ -38,8 +38,18 @@ def test_defaults():
     cfg = _compose()
     assert cfg.loss.name == "full"
     assert (cfg.loss.w_event, cfg.loss.w_acc, cfg.loss.w_rgb, cfg.loss.lam_sparsity) == (1.0, 1.0, 0.01, 0.01)
-    assert cfg.loss.sparsity_ramp == 30000
     assert cfg.data.neg_ratio == 0.9
+    # schedules are fractions of the run: 2500 CPU steps -> 67 annealing, 500 ramp steps
+    assert (cfg.trainer.max_steps, cfg.model.anneal_steps, cfg.loss.sparsity_ramp) == (2500, 67, 500)
+    # trainer=cpu sizes the NeRF MLP for 2 cores (conf/sizing/cpu_nerf.yaml)
+    assert (cfg.model.depth, cfg.model.width, cfg.model.optim.lr) == (4, 128, 1e-3)
+
+
+def test_sizing_applies_only_to_its_trainer_and_model():
+    ngp = _compose("model=ngp")
+    assert ngp.model.optim.lr == 1e-3 and "depth" not in ngp.model
+    override = _compose("model.depth=8", "model.width=256")  # the command line still wins
+    assert (override.model.depth, override.model.width) == (8, 256)
 
 
 @pytest.mark.parametrize("preset", sorted(EXPECTED))
@@ -60,6 +70,13 @@ def test_paper_trainer_preset_has_paper_values():
     cfg = _compose("trainer=paper")
     assert (cfg.trainer.n_rays, cfg.trainer.n_coarse, cfg.trainer.n_fine) == (1024, 64, 128)
     assert cfg.trainer.max_steps == 150000
+    # the paper's network, optimiser and schedules (method.md)
+    m = cfg.model
+    assert (m.depth, m.width, m.skip, m.pos_bands, m.time_bands, m.colour_width) == (
+        8, 256, 4, 14, 7, 128)
+    assert (m.optim.lr, m.optim.weight_decay) == (1e-4, 0.1)
+    assert m.anneal_steps == 4000 and cfg.loss.sparsity_ramp == 30000
+    assert (cfg.loss.lam_sparsity, cfg.loss.w_rgb) == (1e-2, 0.01)
 
 
 def test_unknown_option_lists_valid_choices():

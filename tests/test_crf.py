@@ -7,7 +7,11 @@ import numpy as np
 import pytest
 
 from eventrecon.capture.crf import (
-    average_fit_bias, exposure_from_name, fit_crf, load_sweep_csv, simulate_sweep,
+    average_fit_bias,
+    exposure_from_name,
+    fit_crf,
+    load_sweep_csv,
+    simulate_sweep,
 )
 from eventrecon.capture.crf_model import apply_crf
 from eventrecon.rig import main

@@ -17,9 +17,13 @@ import torch
 
 from eventrecon.data.types import EventStream
 from eventrecon.events.accumulate import DecayedEvents
-from eventrecon.events.noise_theory import (eq15_supplementary, eq18_supplementary,
-                                            noise_limits, noise_moments,
-                                            simulate_noise_accumulation)
+from eventrecon.events.noise_theory import (
+    eq15_supplementary,
+    eq18_supplementary,
+    noise_limits,
+    noise_moments,
+    simulate_noise_accumulation,
+)
 
 P = 20000  # Monte-Carlo pixels
 

@@ -255,6 +255,7 @@ def test_independent_dataset_trains(scene):
     """The hand-written dataset trains a few steps: finite losses, parameters move."""
     try:
         import lightning as L
+
         from eventrecon.data.batcher import RayBatcher, Segment
         from eventrecon.fields.nerf import NeRFField
         from eventrecon.losses import LossConfig

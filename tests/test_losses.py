@@ -9,8 +9,15 @@ import pytest
 import torch
 
 from eventrecon.errors import InputError
-from eventrecon.losses import (LossConfig, acc_loss, event_loss, rgb_loss, sparsity_loss,
-                               sparsity_weight, total_loss)
+from eventrecon.losses import (
+    LossConfig,
+    acc_loss,
+    event_loss,
+    rgb_loss,
+    sparsity_loss,
+    sparsity_weight,
+    total_loss,
+)
 
 EPS, THETA = 0.01, 0.5
 RGB0 = torch.tensor([[0.1, 0.2, 0.3], [0.0, 1.0, 0.5]], dtype=torch.float64)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -15,7 +16,7 @@ from eventrecon.fields import Field, NeRFField
 from eventrecon.fields.encoding import BandAnnealing, PositionalEncoding, band_window
 from eventrecon.render.volume import Renderer
 
-CONF = "conf/model/nerf.yaml"
+CONF = str(Path(__file__).resolve().parents[1] / "conf" / "model" / "nerf.yaml")
 
 
 def _reference_encoding(x: torch.Tensor, n_bands: int) -> torch.Tensor:
@@ -113,15 +114,17 @@ def test_nerf_field_architecture_and_parameter_count() -> None:
 
 
 def test_config_instantiates_the_field_and_carries_the_optimiser() -> None:
-    from hydra.utils import instantiate
+    from eventrecon.runner import build_field
 
     cfg = OmegaConf.load(CONF)
     assert open(CONF).readline().startswith("# python train.py model=nerf")
     assert cfg.optim.lr == 1e-4 and cfg.optim.weight_decay == 0.1
-    kwargs = {k: v for k, v in cfg.items() if k != "optim"}
-    kwargs.update(depth=2, width=16, pos_bands=2, time_bands=1)
-    f = instantiate(OmegaConf.create(kwargs))
+    # the model file inside a run config: its schedule is a fraction of trainer.max_steps
+    small = OmegaConf.merge(cfg, dict(depth=2, width=16, pos_bands=2, time_bands=1))
+    run = OmegaConf.create({"trainer": {"max_steps": 150_000}, "model": small})
+    f = build_field(run.model)
     assert isinstance(f, NeRFField) and len(f.layers) == 2
+    assert f.pos_enc.anneal_steps == f.time_enc.anneal_steps == 4000  # the paper's value
 
 
 @pytest.fixture

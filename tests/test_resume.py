@@ -12,13 +12,12 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
-
-from eventrecon.sim.pipeline import ensure_dataset
 from integration import TINY, TINY_NERF, tiny_config
 
+from eventrecon.sim.pipeline import ensure_dataset
+
 ROOT = Path(__file__).resolve().parents[1]
-STEPS = 40
+STEPS = 120
 
 
 def _cmd(data_dir: Path, run_dir: Path) -> list[str]:
@@ -41,21 +40,22 @@ def test_sigkill_then_resume_gives_identical_metrics(tmp_path: Path):
     rng = random.Random(0)
     last = run_dir / "seg0" / "checkpoints" / "last.ckpt"
     kills = 0
-    for _ in range(2):
+    for _ in range(3):
+        if (run_dir / "metrics.json").exists():
+            break  # the previous attempt finished before the kill landed
         proc = subprocess.Popen(_cmd(data_dir, run_dir), env=_env(),
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        seen = last.stat().st_mtime if last.exists() else None
+        seen = last.stat().st_mtime_ns if last.exists() else None
         deadline = time.time() + 120
         while time.time() < deadline and proc.poll() is None:
-            if last.exists() and last.stat().st_mtime != seen:
+            if last.exists() and last.stat().st_mtime_ns != seen:
                 break  # a (new) checkpoint exists: now kill at a random moment
-            time.sleep(0.05)
-        time.sleep(rng.uniform(0.0, 1.5))
+            time.sleep(0.02)
+        time.sleep(rng.uniform(0.0, 1.0))
         if proc.poll() is None:
             proc.send_signal(signal.SIGKILL)
             proc.wait()
             kills += 1
-        assert not (run_dir / "metrics.json").exists() or proc.returncode == 0
     assert kills >= 1, "the run finished before it could be killed; lengthen it"
     subprocess.run(_cmd(data_dir, run_dir), check=True, env=_env(), capture_output=True)
     resumed = json.loads((run_dir / "metrics.json").read_text())

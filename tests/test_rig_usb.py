@@ -156,7 +156,9 @@ def test_cli_check_exit_codes(capsys):
 
 
 def test_no_libusb_says_how_to_install_in_one_line(monkeypatch, capsys):
-    import usb.backend.libusb0, usb.backend.libusb1, usb.backend.openusb
+    import usb.backend.libusb0
+    import usb.backend.libusb1
+    import usb.backend.openusb
     for m in (usb.backend.libusb0, usb.backend.libusb1, usb.backend.openusb):
         monkeypatch.setattr(m, "get_backend", lambda *a, **k: None)
     with pytest.raises(LibusbMissing, match="apt-get install libusb-1.0-0"):

@@ -8,8 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from eventrecon.data.sampling import (jitter, pick_reference, rays_per_view, sample_pixels,
-                                      sample_window)
+from eventrecon.data.sampling import (
+    jitter,
+    pick_reference,
+    rays_per_view,
+    sample_pixels,
+    sample_window,
+)
 from eventrecon.data.types import EventStream
 from eventrecon.errors import InputError
 from eventrecon.events.accumulate import DecayedEvents

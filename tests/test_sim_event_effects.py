@@ -10,7 +10,11 @@ import pytest
 from eventrecon.errors import InputError
 from eventrecon.sim.config import effect_rng
 from eventrecon.sim.event_effects import (
-    EVENT_EFFECTS, EventContext, ViewEvents, bayer_channel, first_order_lowpass,
+    EVENT_EFFECTS,
+    EventContext,
+    ViewEvents,
+    bayer_channel,
+    first_order_lowpass,
 )
 from eventrecon.sim.event_sim import simulate_events
 from eventrecon.sim.ideal import CoreSettings, SignalSetup, run_core

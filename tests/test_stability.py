@@ -22,16 +22,15 @@ from pathlib import Path
 
 import pytest
 import torch
+from integration import TINY, TINY_NERF, tiny_config
 from torch.utils._python_dispatch import TorchDispatchMode
 
 import eventrecon.module as module_lib
 from eventrecon import runner
-from eventrecon.data.batcher import RayBatcher
 from eventrecon.losses import total_loss
-from eventrecon.module import EventNeRFModule, NonFiniteLossError, StepConfig, step_generator
+from eventrecon.module import EventNeRFModule, NonFiniteLossError, step_generator
 from eventrecon.segments import resolve_segments
 from eventrecon.sim.pipeline import ensure_dataset
-from tests.integration import TINY, TINY_NERF, tiny_config
 
 ROOT = Path(__file__).resolve().parents[1]
 BACKBONES = {
@@ -64,12 +63,10 @@ class _Bf16Ops(TorchDispatchMode):
 def _module(data_dir: Path, model: str) -> EventNeRFModule:
     cfg = tiny_config(data_dir, f"model={model}", *BACKBONES[model], base=TINY)
     ds = runner.load_dataset(cfg)
-    seg = resolve_segments(ds.meta.get("segments"), None)[0]
+    props = runner.scene_properties(cfg, ds)
+    seg = resolve_segments(props.segments, None)[0]
     torch.manual_seed(0)
-    batcher = RayBatcher(ds.splits["train"], seg, decay=float(ds.meta.get("decay", 1.0)),
-                         bayer=bool(ds.meta.get("bayer", False)), neg_ratio=0.9)
-    return EventNeRFModule(runner.build_field(cfg.model), runner.build_renderer(cfg, ds.meta),
-                           batcher, runner.loss_config(cfg, ds.meta), StepConfig(n_rays=96))
+    return runner.build_module(cfg, props, ds.splits["train"], seg)
 
 
 def _step(mod: EventNeRFModule, batch: dict, bf16: bool) -> tuple[torch.Tensor, torch.Tensor, set]:

@@ -18,10 +18,10 @@ import sys
 from pathlib import Path
 
 import pytest
+from integration import tiny_config
 
 from eventrecon import runner
 from eventrecon.sim.pipeline import ensure_dataset
-from tests.integration import tiny_config
 
 ROOT = Path(__file__).resolve().parents[1]
 VIEWS = (2, 99, 3)
@@ -42,9 +42,13 @@ def _sweep(data_dir: Path, sweep_dir: Path) -> str:
     return out
 
 
+def _job(sweep_dir: Path, views: int) -> Path:
+    """A job's folder: its overrides, ``scale`` included (smoke and cpu runs stay apart)."""
+    return sweep_dir / f"data.views={views},scale=smoke"
+
+
 def _metrics(sweep_dir: Path) -> dict[int, dict]:
-    return {v: json.loads((sweep_dir / f"data.views={v}" / "metrics.json").read_text())
-            for v in VIEWS}
+    return {v: json.loads((_job(sweep_dir, v) / "metrics.json").read_text()) for v in VIEWS}
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +63,7 @@ def test_failing_job_is_recorded_skipped_on_rerun_and_reported(data_dir: Path, t
     sweep = tmp_path / "sweep"
     out = _sweep(data_dir, sweep)
     jobs = sorted(p.name for p in sweep.iterdir() if (p / ".hydra").is_dir())
-    assert jobs == sorted(f"data.views={v}" for v in VIEWS)
+    assert jobs == sorted(_job(sweep, v).name for v in VIEWS)
     m = _metrics(sweep)
     error = ("InputError: config: data.views: expected an integer in [1, 6] "
              "(views in the dataset), got 99")
@@ -72,12 +76,12 @@ def test_failing_job_is_recorded_skipped_on_rerun_and_reported(data_dir: Path, t
     # the failure carries the identity a finished run would have: same cell in the report
     assert {k: m[99][k] for k in IDENTITY} == {**{k: m[2][k] for k in IDENTITY}, "views": 99}
 
-    stamps = {v: (sweep / f"data.views={v}" / "metrics.json").stat().st_mtime_ns for v in VIEWS}
+    stamps = {v: (_job(sweep, v) / "metrics.json").stat().st_mtime_ns for v in VIEWS}
     out = _sweep(data_dir, sweep)
     assert out.count("finished before, skipped") == 2
-    assert f"{sweep / 'data.views=2'}: finished before, skipped" in out
+    assert f"{_job(sweep, 2)}: finished before, skipped" in out
     assert out.count("job failed: config: data.views") == 1  # the failed job was retried
-    again = {v: (sweep / f"data.views={v}" / "metrics.json").stat().st_mtime_ns for v in VIEWS}
+    again = {v: (_job(sweep, v) / "metrics.json").stat().st_mtime_ns for v in VIEWS}
     assert again[2] == stamps[2] and again[3] == stamps[3]
     assert again[99] > stamps[99]
     assert _metrics(sweep)[2] == m[2]

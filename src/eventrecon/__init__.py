@@ -18,3 +18,7 @@ __version__ = "0.1.0"
 
 #: Time span of a sequence in the published layout: events and frames carry t in [0, 1000].
 TIME_SPAN: float = 1000.0
+
+from eventrecon.config import register_resolvers as _register_resolvers  # noqa: E402
+
+_register_resolvers()  # ${of_run:...} in conf/ resolves wherever eventrecon is imported

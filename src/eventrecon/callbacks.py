@@ -7,7 +7,12 @@ Two kinds of evaluation, both on the held-out views of the segment:
   segment (start, middle, end). SSIM/LPIPS need whole images and are left empty;
 - *full* (every ``eval_every`` steps and at the end): whole images of every held-out
   view at those three times — PSNR, SSIM, LPIPS — plus TensorBoard images (render vs
-  ground truth, opacity, depth, the E(t0, t1) map of the last batch).
+  ground truth, opacity, depth, and for training view 0 and the last step's window the
+  measured ``θ·E(t0, t1)`` beside the rendered ``L(Ĉ(t1)) − L(Ĉ(t0))`` of the pixel's
+  channel).
+
+Under DDP every rank evaluates (the checkpoint it may save is a collective call) and
+only rank 0 writes ``curve.csv``; loggers are rank-0 only by themselves.
 
 Wall-clock is the training time only: time spent inside this callback is subtracted,
 so curves of different backbones compare training cost. Rows go to ``curve.csv``
@@ -69,6 +74,7 @@ class HeldOutMonitor(L.Callback):
         self.best_psnr = -math.inf
         self.wall = wall_offset
         self._t_last: float | None = None
+        self._full_at: int | None = None  # the step of the last full evaluation
         self.curve_path = self.out_dir / "curve.csv"
 
     # -------------------------------------------------------------- wall clock
@@ -99,7 +105,9 @@ class HeldOutMonitor(L.Callback):
             self.evaluate(trainer, pl_module, full=False)
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        self.evaluate(trainer, pl_module, full=True)
+        """A full evaluation of the final model, unless the schedule just made one."""
+        if self._full_at != int(trainer.global_step):
+            self.evaluate(trainer, pl_module, full=True)
 
     def state_dict(self) -> dict[str, Any]:
         return {"wall": self.wall, "best_psnr": self.best_psnr}
@@ -143,7 +151,9 @@ class HeldOutMonitor(L.Callback):
             mse = float(np.mean([np.mean((p - g) ** 2) for p, g in zip(enc, gts_enc)]))
             row = {"psnr": -10 * math.log10(max(mse, 1e-12)), "ssim": None, "lpips": None}
         kind = "full" if full else "cheap"
-        self._append_curve(step, row, kind)
+        if full:
+            self._full_at = step
+        self._append_curve(step, row, kind, trainer)
         if trainer.logger is not None:
             trainer.logger.log_metrics(
                 {f"val_{kind}/{k}": float(v) for k, v in row.items() if v is not None}, step)
@@ -163,7 +173,9 @@ class HeldOutMonitor(L.Callback):
                           perturb=False)
         return levels[-1]["rgb"].clamp(0, 1).cpu().numpy()
 
-    def _append_curve(self, step: int, row: dict, kind: str) -> None:
+    def _append_curve(self, step: int, row: dict, kind: str, trainer: L.Trainer) -> None:
+        if not trainer.is_global_zero:
+            return
         new = not self.curve_path.exists()
         self.curve_path.parent.mkdir(parents=True, exist_ok=True)
         with self.curve_path.open("a", newline="") as f:
@@ -187,9 +199,38 @@ class HeldOutMonitor(L.Callback):
         depth = res["depth"].cpu().numpy()
         exp.add_image("heldout/depth", depth / max(float(depth.max()), 1e-6), step,
                       dataformats="HW")
-        batcher = pl_module.batcher
-        emap = batcher.events.window_all(batcher.segment.start, batcher.segment.end)[0]
-        emap = emap.float().cpu().numpy()
-        scale = max(float(np.abs(emap).max()), 1.0)
-        rgb = np.stack([np.clip(emap, 0, None), np.zeros_like(emap), np.clip(-emap, 0, None)], -1)
-        exp.add_image("train/events_view0_segment", rgb / scale, step, dataformats="HWC")
+        exp.add_image("train/events_measured_vs_rendered", self._event_image(pl_module), step,
+                      dataformats="HWC")
+
+    @torch.no_grad()
+    def _event_image(self, pl_module: Any) -> np.ndarray:
+        """``[H, 2W, 3]``: measured ``θ·E(t0, t1)`` | rendered ``L(Ĉ(t1)) − L(Ĉ(t0))``.
+
+        Training view 0, the last step's window, the log change of the channel each
+        pixel sees (its Bayer channel, or the channel mean for grey event pixels); red
+        for brighter, blue for darker, both panels on the same scale.
+        """
+        from eventrecon.events.bayer import bayer_mask
+        from eventrecon.losses import log_intensity
+
+        batcher, renderer, field = pl_module.batcher, pl_module.renderer, pl_module.field
+        cfg = pl_module.loss_cfg
+        t0, t1 = pl_module.last_window
+        seg = batcher.segment
+        measured = cfg.theta * batcher.events.window_all(seg.units(t0), seg.units(t1))[0]
+        was_training = field.training
+        field.eval()
+        bg = batcher.background[0]
+        rgbs = [renderer.render_image(field, batcher.cameras, 0, t, bg, chunk=self.chunk)["rgb"]
+                for t in (t0, t1)]
+        field.train(was_training)
+        if batcher.bayer:  # the channel each pixel sees
+            mask = bayer_mask(*rgbs[0].shape[:2], device=rgbs[0].device)
+            seen = [(rgb * mask).sum(-1) for rgb in rgbs]
+        else:  # grey event pixels see the channel mean (as the losses)
+            seen = [rgb.mean(-1) for rgb in rgbs]
+        change = log_intensity(seen[1], cfg.eps) - log_intensity(seen[0], cfg.eps)
+        panels = torch.cat([measured.to(change), change], dim=1).float().cpu().numpy()
+        scale = max(float(np.abs(panels).max()), cfg.theta)
+        return np.stack([np.clip(panels, 0, None), np.zeros_like(panels),
+                         np.clip(-panels, 0, None)], -1) / scale

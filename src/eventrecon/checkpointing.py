@@ -10,13 +10,15 @@ import io
 import json
 import os
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import torch
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
-__all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_with", "AtomicCheckpointIO"]
+__all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_with", "AtomicCheckpointIO",
+           "remove_stale_temporaries"]
 
 
 def atomic_write_with(path: str | Path, write: Callable[[io.BufferedWriter], None]) -> None:
@@ -33,6 +35,20 @@ def atomic_write_with(path: str | Path, write: Callable[[io.BufferedWriter], Non
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def remove_stale_temporaries(folder: str | Path) -> list[Path]:
+    """Delete the ``.<name>.*.tmp`` files a killed :func:`atomic_write_with` left in ``folder``.
+
+    SIGKILL skips the ``except`` clause that normally removes the temporary file; the
+    targets themselves are intact (the rename never happened). Call this only while no
+    other process writes to ``folder``. Returns the removed paths.
+    """
+    folder = Path(folder)
+    stale = sorted(folder.glob(".*.tmp")) if folder.is_dir() else []
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return stale
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> None:

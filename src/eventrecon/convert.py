@@ -37,9 +37,9 @@ import os
 import shutil
 import sys
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import imageio.v3 as iio
 import numpy as np
@@ -228,7 +228,7 @@ def convert_aedat4(inputs: Sequence[str | Path], out: str | Path, start_us: int 
     recs = [decode_aedat4(p) for p in inputs]
     sizes = {(r.width, r.height) for r in recs}
     if len(sizes) != 1:
-        raise InputError(recs[-1].path, "resolution", f"the same sensor size for all cameras",
+        raise InputError(recs[-1].path, "resolution", "the same sensor size for all cameras",
                          sorted(sizes))
     (w, h), = sizes
     s0, s1 = shared_span(recs)

@@ -1,11 +1,12 @@
 """Held-out evaluation: render the validation views at every ground-truth time.
 
-``python -m eventrecon.evaluate run=DIR [ckpt=best|last] [color_correct=true]`` loads a
+``python -m eventrecon.evaluate run=DIR [ckpt=last|best] [color_correct=true]`` loads a
 finished or interrupted run (its ``.hydra/config.yaml`` and per-segment checkpoints),
 renders every held-out view at every ground-truth time (cross-fading segments inside
-their overlaps), writes ``renders/<view>/<frame:04d>.png`` and an animated GIF per view,
-and saves ``metrics.json`` (PSNR, SSIM, LPIPS on the sRGB-encoded images, as the
-published PNGs are compared).
+their overlaps), writes ``renders/<view>/<frame:04d>.png`` and an animated GIF per view
+(render | ground truth), and saves ``metrics_eval.json`` (PSNR, SSIM, LPIPS on the
+sRGB-encoded images, as the published PNGs are compared; ``color_correct=true`` adds the
+colour-corrected variant and writes ``metrics_eval_cc.json``).
 """
 
 from __future__ import annotations
@@ -13,8 +14,8 @@ from __future__ import annotations
 import json
 import logging
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import torch
@@ -31,16 +32,17 @@ log = logging.getLogger(__name__)
 
 
 @torch.no_grad()
-def render_heldout(fields: Sequence[Field], segments: Sequence[Segment], renderer: Renderer,
+def render_heldout(models: Sequence[tuple[Field, Renderer]], segments: Sequence[Segment],
                    split: SplitData, views: Sequence[int], frame_idx: Sequence[int],
                    chunk: int = 8192) -> np.ndarray:
     """Linear renders ``[len(frame_idx), len(views), H, W, 3]`` of held-out views.
 
-    At time ``t`` the segments containing ``t`` are blended by
+    ``models[k]`` is segment ``k``'s field and renderer (each segment keeps its own
+    clipping state). At time ``t`` the segments containing ``t`` are blended by
     :func:`~eventrecon.segments.crossfade_weights` (linear-space ramp).
     """
     bg = background_linear(split)
-    device = next(iter(fields[0].parameters())).device
+    device = next(iter(models[0][0].parameters())).device
     H, W = split.cameras.height, split.cameras.width
     out = np.zeros((len(frame_idx), len(views), H, W, 3), np.float32)
     for a, f in enumerate(frame_idx):
@@ -50,7 +52,8 @@ def render_heldout(fields: Sequence[Field], segments: Sequence[Segment], rendere
             for seg_i, w in crossfade_weights(segments, t):
                 seg = segments[seg_i]
                 t_norm = min(1.0, max(0.0, float(seg.normalise(t))))
-                res = renderer.render_image(fields[seg_i], split.cameras, v, t_norm,
+                field, renderer = models[seg_i]
+                res = renderer.render_image(field, split.cameras, v, t_norm,
                                             bg[v].to(device), chunk=chunk)
                 img += w * res["rgb"]
             out[a, b] = img.clamp(0, 1).cpu().numpy()
@@ -92,17 +95,30 @@ def write_renders(renders_lin: np.ndarray, split: SplitData, views: Sequence[int
     return written
 
 
+USAGE = "usage: python -m eventrecon.evaluate run=DIR [ckpt=last|best] [color_correct=true]"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """CLI: ``python -m eventrecon.evaluate run=DIR [ckpt=best|last] [color_correct=true]``."""
+    """CLI (see module docstring). Exit 0 done, 2 bad input (one line)."""
+    from eventrecon.errors import InputError
     from eventrecon.runner import evaluate_run
 
-    args = dict(a.split("=", 1) for a in (argv if argv is not None else sys.argv[1:]) if "=" in a)
-    if "run" not in args:
-        log.error("usage: python -m eventrecon.evaluate run=DIR [ckpt=best|last] "
-                  "[color_correct=true]")
+    argv = list(argv if argv is not None else sys.argv[1:])
+    known = {"run", "ckpt", "color_correct"}
+    bad = [a for a in argv if "=" not in a or a.split("=", 1)[0] not in known]
+    args = dict(a.split("=", 1) for a in argv if a not in bad)
+    if bad or "run" not in args:
+        log.error("%s (got %s)", USAGE, " ".join(argv) or "nothing")
         return 2
-    metrics = evaluate_run(Path(args["run"]), ckpt=args.get("ckpt", "best"),
-                           color_correct=args.get("color_correct", "false").lower() == "true")
+    if args.get("ckpt", "last") not in ("last", "best"):
+        log.error("ckpt: expected last or best, got %s", args["ckpt"])
+        return 2
+    try:
+        metrics = evaluate_run(Path(args["run"]), ckpt=args.get("ckpt", "last"),
+                               color_correct=args.get("color_correct", "false").lower() == "true")
+    except InputError as e:
+        log.error("%s", e)
+        return 2
     log.info("%s", json.dumps(metrics, indent=1))
     return 0
 

@@ -36,8 +36,8 @@ Total (per level, summed over the coarse and fine levels):
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import torch
 from torch import Tensor

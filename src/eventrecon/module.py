@@ -2,8 +2,9 @@
 
 Per step (method.md "Per-iteration sampling"):
 
-1. ``batch = batcher.sample(n_rays, gen)`` with ``gen`` seeded by ``(seed, step)`` — the
-   batch is a pure function of the step, so a resumed run replays the same batches;
+1. ``batch = batcher.sample(n_rays, gen)`` with ``gen`` seeded by ``(seed, step, rank)`` —
+   the batch is a pure function of the step, so a resumed run replays the same batches,
+   and DDP ranks draw different rays;
 2. every ray is rendered at three times ``t0, t1, t_ref`` in one renderer call (the
    rays stacked ``[3N]``), coarse and fine levels by ONE field;
 3. :func:`eventrecon.losses.total_loss` sums L_event, L_acc, L_rgb and the ramped
@@ -26,6 +27,7 @@ import torch
 from torch import Tensor
 
 from eventrecon.data.batcher import RayBatcher
+from eventrecon.data.datamodule import StepCounter
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.losses import LossConfig, total_loss
@@ -75,12 +77,14 @@ class EventNeRFModule(L.LightningModule):
     Args:
         field: the representation backbone.
         renderer: the volume renderer (holds the clipping cylinder and ``clip_scale``).
-        batcher: draws the training batch of the segment.
+        batcher: draws the training batch of the segment; ``None`` takes the one the
+            trainer's :class:`~eventrecon.data.datamodule.SegmentDataModule` builds on
+            this process's device in ``setup``.
         loss: loss weights, ε and θ.
         step: rays per step, optimiser and guard settings.
     """
 
-    def __init__(self, field: Field, renderer: Renderer, batcher: RayBatcher,
+    def __init__(self, field: Field, renderer: Renderer, batcher: RayBatcher | None,
                  loss: LossConfig, step: StepConfig) -> None:
         super().__init__()
         self.field = field
@@ -91,6 +95,16 @@ class EventNeRFModule(L.LightningModule):
         self.nonfinite_in_row = 0
         self.nonfinite_total = 0
         self.stop_reason: str | None = None
+        self.last_window: tuple[float, float] = (0.0, 1.0)  # (t0, t1) of the last step
+
+    def setup(self, stage: str) -> None:
+        """Take the DataModule's batcher (built on this process's device)."""
+        if self.batcher is None:
+            dm = getattr(self.trainer, "datamodule", None)
+            if dm is None or getattr(dm, "batcher", None) is None:
+                raise RuntimeError("EventNeRFModule without a batcher needs a "
+                                   "SegmentDataModule passed to trainer.fit(datamodule=...)")
+            self.batcher = dm.batcher
 
     # ------------------------------------------------------------------ optimiser
     def configure_optimizers(self) -> torch.optim.Optimizer:
@@ -119,8 +133,9 @@ class EventNeRFModule(L.LightningModule):
 
     def training_step(self, _: Any, batch_idx: int) -> Tensor | None:
         step = int(self.global_step)
-        gen = step_generator(self.step_cfg.seed, step)
+        gen = step_generator(self.step_cfg.seed, step, stream=int(self.global_rank))
         batch = self.batcher.sample(self.step_cfg.n_rays, gen)
+        self.last_window = (float(batch["t0"][0, 0]), float(batch["t1"][0, 0]))
         levels = self.render_three(batch, gen)
         terms = total_loss(levels, batch, self.loss_cfg, step)
         loss = terms["loss"]
@@ -159,7 +174,7 @@ class EventNeRFModule(L.LightningModule):
 
     def train_dataloader(self) -> Any:
         """Steps are drawn in :meth:`training_step`; the loader only counts them."""
-        return torch.utils.data.DataLoader(_StepCounter(), batch_size=None)
+        return torch.utils.data.DataLoader(StepCounter(), batch_size=None)
 
     # ------------------------------------------------------------------ checkpoints
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
@@ -181,13 +196,3 @@ class EventNeRFModule(L.LightningModule):
         prepare = getattr(self.field, "prepare_state_dict", None)
         if prepare is not None:  # backbones whose tensors grow during training
             prepare(checkpoint["state_dict"], prefix="field.")
-
-
-class _StepCounter(torch.utils.data.IterableDataset):
-    """An endless stream of step indices (the batch itself is drawn in the module)."""
-
-    def __iter__(self):  # type: ignore[override]
-        i = 0
-        while True:
-            yield i
-            i += 1

@@ -15,8 +15,8 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 from eventrecon.capture.crf import fit_crf, load_sweep_csv, load_sweep_images, plot_crf
 from eventrecon.capture.usb import LibusbMissing, check_rig, list_cameras

@@ -13,6 +13,7 @@ from __future__ import annotations
 import importlib
 import json
 import logging
+import math
 import resource
 import time
 from dataclasses import replace
@@ -25,8 +26,10 @@ import torch
 from hydra.utils import get_class
 from omegaconf import DictConfig, OmegaConf
 
-from eventrecon.checkpointing import AtomicCheckpointIO, atomic_write_json
+from eventrecon.checkpointing import AtomicCheckpointIO, atomic_write_json, remove_stale_temporaries
 from eventrecon.data.batcher import RayBatcher, Segment
+from eventrecon.data.datamodule import SegmentDataModule
+from eventrecon.data.properties import SceneProperties, resolve_properties
 from eventrecon.data.types import Dataset, SplitData
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
@@ -35,12 +38,14 @@ from eventrecon.module import EventNeRFModule, StepConfig, field_class_name
 from eventrecon.render.volume import Renderer
 from eventrecon.segments import resolve_segments
 
-__all__ = ["run", "load_dataset", "build_field", "build_renderer", "select_views",
-           "select_fps", "evaluate_run", "run_info", "planned_run_info", "check_checkpoint"]
+__all__ = ["run", "load_dataset", "scene_properties", "build_field", "build_renderer",
+           "build_module", "loss_config", "event_decay", "select_views", "select_fps",
+           "train_segment", "load_segment", "evaluate_run", "run_info", "planned_run_info",
+           "check_checkpoint"]
 
 log = logging.getLogger(__name__)
 
-DEFAULT_CYLINDER = {"radius": 0.5, "y_min": -0.75, "y_max": 0.25}
+#: The "w/o clipping" ablation: the cylinder covers the unit sphere's box.
 NO_CLIPPING = {"radius": 1.0, "y_min": -1.0, "y_max": 1.0}
 
 
@@ -55,6 +60,12 @@ def load_dataset(cfg: DictConfig) -> Dataset:
 
     root = ensure_dataset(cfg.scene, cfg.data_dir)
     return read_dataset(root)
+
+
+def scene_properties(cfg: DictConfig, ds: Dataset) -> SceneProperties:
+    """ε, θ, decay, Bayer, duration, segments and cylinder of the run's data
+    (``data.*`` over ``meta.json``; see :mod:`eventrecon.data.properties`)."""
+    return resolve_properties(cfg.data, ds.meta, ds.root)
 
 
 def select_views(split: SplitData, n: int | None) -> SplitData:
@@ -74,18 +85,27 @@ def select_views(split: SplitData, n: int | None) -> SplitData:
 
 
 def select_fps(split: SplitData, fps: float | None, duration_s: float) -> SplitData:
-    """Keep the frames nearest to a ``fps`` grid ``k · 1000 / (fps · duration_s)``."""
+    """The frames nearest to a ``fps`` grid ``k · 1000 / (fps · duration_s)``, ``k < fps·duration_s``.
+
+    A rate ``F`` over a clip of ``D`` seconds keeps ``max(1, floor(F·D))`` frames (the grid
+    is half-open, like a camera's shutter): 0.5 FPS over 2 s is one set of frames, as in
+    the supplementary's 0.5 FPS row of Tab. 5. The dataset's own rate keeps every frame.
+    """
     if fps is None:
         return split
     if fps <= 0:
         raise InputError("config", "data.fps", "a positive frame rate", fps)
     times = np.asarray(split.frame_times, dtype=np.float64)
     step = 1000.0 / (fps * duration_s)
-    grid = np.arange(0.0, 1000.0 + 1e-9, step)
-    keep = sorted({int(np.argmin(np.abs(times - g))) for g in grid})
-    if len(times) > 1 and step < float(np.min(np.diff(times))) - 1e-6:
-        native = 1000.0 / (float(np.min(np.diff(times))) * duration_s)
+    native_step = float(np.min(np.diff(times))) if len(times) > 1 else math.inf
+    if step < native_step - 1e-6:
+        native = 1000.0 / (native_step * duration_s)
         raise InputError("config", "data.fps", f"at most the dataset's {native:g} FPS", fps)
+    if step <= native_step + 1e-6:
+        return split
+    n = max(1, int(math.floor(fps * duration_s + 1e-9)))
+    grid = np.arange(n) * step
+    keep = sorted({int(np.argmin(np.abs(times - g))) for g in grid})
     return replace(split, frame_times=times[keep], frames=split.frames[keep],
                    masks=None if split.masks is None else split.masks[keep])
 
@@ -115,22 +135,48 @@ def build_field(model_cfg: DictConfig) -> Field:
         raise InputError("config", "model", f"the arguments of {target}", str(e)) from None
 
 
-def build_renderer(cfg: DictConfig, meta: dict) -> Renderer:
-    """The renderer with the run's samples and clipping cylinder."""
-    cyl = dict(DEFAULT_CYLINDER)
-    cyl.update(meta.get("cylinder") or {})
-    if not cfg.loss.clipping:
-        cyl = dict(NO_CLIPPING)
+def build_renderer(cfg: DictConfig, props: SceneProperties) -> Renderer:
+    """The renderer with the run's samples and clipping cylinder (``loss.clipping``)."""
+    cyl = dict(props.cylinder) if cfg.loss.clipping else dict(NO_CLIPPING)
     return Renderer(n_coarse=cfg.trainer.n_coarse, n_fine=cfg.trainer.n_fine,
                     chunk=cfg.trainer.chunk, **cyl)
 
 
-def loss_config(cfg: DictConfig, meta: dict) -> LossConfig:
+def loss_config(cfg: DictConfig, props: SceneProperties) -> LossConfig:
+    """The loss weights of ``cfg.loss`` with the data's ε and θ."""
     lc = cfg.loss
     return LossConfig(w_event=lc.w_event, w_acc=lc.w_acc, w_rgb=lc.w_rgb,
                       lam_sparsity=lc.lam_sparsity, sparsity_ramp=lc.sparsity_ramp,
-                      eps=float(meta.get("tonemap_eps", 1e-2)),
-                      theta=float(meta.get("threshold", 0.5)))
+                      eps=props.tonemap_eps, theta=props.threshold)
+
+
+def event_decay(cfg: DictConfig, props: SceneProperties) -> float:
+    """``b``: ``loss.decay`` (the "w/o decay" ablation sets 1) over the data's own."""
+    return float(cfg.loss.decay) if cfg.loss.decay is not None else props.decay
+
+
+def build_module(cfg: DictConfig, props: SceneProperties, train: SplitData | None,
+                 seg: Segment, k: int = 0, device: str | torch.device = "cpu"
+                 ) -> EventNeRFModule:
+    """The LightningModule of segment ``k``: field, renderer, losses, step settings.
+
+    With ``train`` the module gets its own :class:`RayBatcher` on ``device`` (tests,
+    notebooks); with ``None`` it takes the batcher of the trainer's
+    :class:`~eventrecon.data.datamodule.SegmentDataModule` (training runs).
+    """
+    field = build_field(cfg.model)
+    batcher = None
+    if train is not None:
+        batcher = RayBatcher(train, seg, decay=event_decay(cfg, props), bayer=props.bayer,
+                             neg_ratio=cfg.data.neg_ratio, device=device)
+    optim = cfg.model.get("optim", {}) or {}
+    lr = cfg.trainer.lr if cfg.trainer.lr is not None else optim.get("lr", 1e-3)
+    step = StepConfig(n_rays=cfg.trainer.n_rays, lr=float(lr),
+                      weight_decay=float(optim.get("weight_decay", 0.0)),
+                      max_nonfinite=cfg.trainer.max_nonfinite, log_every=cfg.trainer.log_every,
+                      seed=cfg.seed + 1000 * k)
+    return EventNeRFModule(field, build_renderer(cfg, props), batcher,
+                           loss_config(cfg, props), step)
 
 
 def run_info(cfg: DictConfig, meta: dict, views: int | None = None,
@@ -202,6 +248,32 @@ def merge_curves(seg_dirs: list[Path], out: Path) -> None:
 
 
 # ---------------------------------------------------------------------------- training
+def flat_hparams(cfg: DictConfig) -> dict[str, Any]:
+    """The run's config as flat ``section.key`` scalars (lists as text) for TensorBoard's
+    HParams tab; the scene's object list and the Lightning passthrough are left out.
+
+    >>> flat_hparams(OmegaConf.create({"seed": 1, "model": {"width": 64, "optim": {"lr": 1e-3}},
+    ...                                "scene": {"objects": [1], "rgb_fps": 5}}))
+    {'seed': 1, 'model.width': 64, 'model.optim.lr': 0.001, 'scene.rgb_fps': 5}
+    """
+    out: dict[str, Any] = {}
+
+    def walk(node: Any, prefix: str) -> None:
+        for key, value in node.items():
+            name = f"{prefix}{key}"
+            if name in ("scene.objects", "trainer.lightning", "hydra"):
+                continue
+            if isinstance(value, dict):
+                walk(value, f"{name}.")
+            elif isinstance(value, (list, tuple)):
+                out[name] = str(value)
+            else:
+                out[name] = value
+
+    walk(OmegaConf.to_container(cfg, resolve=True), "")
+    return out
+
+
 def _trainer(cfg: DictConfig, seg_dir: Path, callbacks: list, k: int) -> L.Trainer:
     from lightning.pytorch.callbacks import ModelCheckpoint
 
@@ -211,6 +283,7 @@ def _trainer(cfg: DictConfig, seg_dir: Path, callbacks: list, k: int) -> L.Train
     if cfg.logger and cfg.logger.get("_target_"):
         lg = dict(OmegaConf.to_container(cfg.logger, resolve=True))
         logger = get_class(lg.pop("_target_"))(save_dir=str(seg_dir.parent), version=f"seg{k}", **lg)
+        logger.log_hyperparams(flat_hparams(cfg))
     kwargs = OmegaConf.to_container(cfg.trainer.lightning, resolve=True)
     return L.Trainer(max_steps=cfg.trainer.max_steps, default_root_dir=str(seg_dir),
                      logger=logger, callbacks=[ckpt, *callbacks],
@@ -218,29 +291,18 @@ def _trainer(cfg: DictConfig, seg_dir: Path, callbacks: list, k: int) -> L.Train
                      enable_model_summary=False, **kwargs)
 
 
-def train_segment(cfg: DictConfig, ds: Dataset, train: SplitData, heldout: SplitData | None,
-                  k: int, seg: Segment, out_dir: Path, wall_offset: float = 0.0
-                  ) -> tuple[EventNeRFModule, float]:
+def train_segment(cfg: DictConfig, props: SceneProperties, train: SplitData,
+                  heldout: SplitData | None, k: int, seg: Segment, out_dir: Path,
+                  wall_offset: float = 0.0) -> tuple[EventNeRFModule, float]:
     """Train (or resume) segment ``k``; returns the module and its training seconds."""
     from eventrecon.callbacks import HeldOutMonitor
 
-    meta = ds.meta
     seg_dir = out_dir / f"seg{k}"
     L.seed_everything(cfg.seed + 1000 * k, workers=True, verbose=False)
-    field = build_field(cfg.model)
-    renderer = build_renderer(cfg, meta)
-    decay = cfg.loss.decay if cfg.loss.decay is not None else float(meta.get("decay", 1.0))
-    device = "cuda" if cfg.trainer.lightning.accelerator in ("gpu", "cuda") else "cpu"
-    batcher = RayBatcher(train, seg, decay=decay, bayer=bool(meta.get("bayer", False)),
-                         neg_ratio=cfg.data.neg_ratio, device=device)
-    optim = cfg.model.get("optim", {}) or {}
-    lr = cfg.trainer.lr if cfg.trainer.lr is not None else optim.get("lr", 1e-3)
-    step = StepConfig(n_rays=cfg.trainer.n_rays, lr=float(lr),
-                      weight_decay=float(optim.get("weight_decay", 0.0)),
-                      max_nonfinite=cfg.trainer.max_nonfinite, log_every=cfg.trainer.log_every,
-                      seed=cfg.seed + 1000 * k)
-    module = EventNeRFModule(field, renderer, batcher, loss_config(cfg, meta), step)
-    callbacks = list(field.callbacks())
+    module = build_module(cfg, props, None, seg, k)
+    data = SegmentDataModule(train, seg, event_decay(cfg, props), props.bayer,
+                             cfg.data.neg_ratio)
+    callbacks = list(module.field.callbacks())
     monitor = None
     if heldout is not None:
         monitor = HeldOutMonitor(heldout, seg, seg_dir, cfg.trainer.curve_every,
@@ -250,18 +312,33 @@ def train_segment(cfg: DictConfig, ds: Dataset, train: SplitData, heldout: Split
         callbacks.append(monitor)
     trainer = _trainer(cfg, seg_dir, callbacks, k)
     ckpt = None
+    removed = remove_stale_temporaries(seg_dir / "checkpoints")
+    if removed:
+        log.info("segment %d: removed %d temporary file(s) of an interrupted checkpoint write",
+                 k, len(removed))
     if cfg.ckpt_path == "last":
         last = seg_dir / "checkpoints" / "last.ckpt"
         ckpt = str(last) if last.exists() else None
     elif cfg.ckpt_path:
         ckpt = str(cfg.ckpt_path)
     if ckpt:
-        check_checkpoint(ckpt, field)
+        check_checkpoint(ckpt, module.field)
         log.info("segment %d: resuming from %s", k, ckpt)
     t = time.perf_counter()
-    trainer.fit(module, ckpt_path=ckpt)
+    trainer.fit(module, datamodule=data, ckpt_path=ckpt)
+    last = seg_dir / "checkpoints" / "last.ckpt"
+    if module.stop_reason is None and _checkpoint_step(last) != int(trainer.global_step):
+        trainer.save_checkpoint(str(last))  # max_steps not a multiple of checkpoint_every
     wall = monitor.wall - wall_offset if monitor is not None else time.perf_counter() - t
     return module, wall
+
+
+def _checkpoint_step(path: Path) -> int | None:
+    """``global_step`` stored in a checkpoint (``None`` if there is none)."""
+    if not path.exists():
+        return None
+    return int(torch.load(path, map_location="cpu", weights_only=False, mmap=True)
+               .get("global_step", -1))
 
 
 def check_checkpoint(path: str | Path, field: Field) -> None:
@@ -295,42 +372,100 @@ def _peak_mem_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _done(seg_dir: Path, max_steps: int) -> dict | None:
+    """The ``done.json`` of a segment trained to at least ``max_steps``, else ``None``."""
+    path = seg_dir / "done.json"
+    if not path.exists():
+        return None
+    done = json.loads(path.read_text())
+    return done if int(done.get("max_steps", -1)) >= max_steps else None
+
+
+def load_segment(cfg: DictConfig, props: SceneProperties, seg_dir: Path, ckpt: str = "last"
+                 ) -> tuple[Field, Renderer]:
+    """Field and renderer of a trained segment from ``seg_dir/checkpoints/<ckpt>.ckpt``.
+
+    The renderer carries the segment's own ``clip_scale`` (cylinder annealing state).
+    """
+    d = seg_dir / "checkpoints"
+    path = d / f"{ckpt}.ckpt"
+    if not path.exists():
+        raise InputError(d, f"{ckpt}.ckpt", "a checkpoint of every segment", "missing")
+    field = build_field(cfg.model)
+    check_checkpoint(path, field)
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    sd = state["state_dict"]
+    prepare = getattr(field, "prepare_state_dict", None)
+    if prepare is not None:  # backbones whose tensors grow during training
+        prepare(sd, prefix="field.")
+    field.load_state_dict({k[6:]: v for k, v in sd.items() if k.startswith("field.")})
+    renderer = build_renderer(cfg, props)
+    renderer.clip_scale = float(state.get("eventrecon", {}).get("clip_scale", 1.0))
+    return field.eval(), renderer
+
+
 def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
-    """Train every segment of the run and evaluate; returns (and saves) the metrics."""
+    """Train every segment of the run and evaluate; returns (and saves) the metrics.
+
+    Segments already trained to ``max_steps`` (their ``seg<k>/done.json``) are not
+    trained again. With ``data.segment=k`` only segment ``k`` is trained; the job that
+    completes the last missing segment of the folder evaluates the whole run (so a
+    multirun over ``data.segment``, whose jobs share one folder, ends cross-faded).
+    """
     from eventrecon.evaluate import evaluate_heldout, render_heldout, write_renders
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     ds = load_dataset(cfg)
-    meta = ds.meta
     if "train" not in ds.splits:
         raise InputError(ds.root, "train/", "a training split")
+    props = scene_properties(cfg, ds)
     train = select_views(ds.splits["train"], cfg.data.views)
-    train = select_fps(train, cfg.data.fps, float(meta.get("duration_s", 1.0)))
+    train = select_fps(train, cfg.data.fps, props.duration_s)
     heldout = ds.splits.get("validation")
-    segments = resolve_segments(meta.get("segments"), cfg.loss.multiseg)
+    segments = resolve_segments(props.segments, cfg.loss.multiseg)
+    if cfg.data.segment is not None and not 0 <= int(cfg.data.segment) < len(segments):
+        raise InputError("config", "data.segment",
+                         f"a segment index in [0, {len(segments) - 1}]", cfg.data.segment)
     todo = range(len(segments)) if cfg.data.segment is None else [int(cfg.data.segment)]
-    info = run_info(cfg, meta, views=train.n_views,
-                    fps=cfg.data.fps or meta.get("rgb_fps"))
+    info = run_info(cfg, ds.meta, views=train.n_views, fps=cfg.data.fps or props.rgb_fps)
+    max_steps = int(cfg.trainer.max_steps)
     log.info("run %s: %d training views, %d RGB frames, %d segment(s), %d steps each",
-             info, train.n_views, len(train.frame_times), len(segments), cfg.trainer.max_steps)
-    modules, wall = {}, 0.0
+             info, train.n_views, len(train.frame_times), len(segments), max_steps)
+    modules: dict[int, EventNeRFModule] = {}
+    wall = 0.0
     for k in todo:
-        modules[k], w = train_segment(cfg, ds, train, heldout, k, segments[k], out_dir, wall)
+        seg_dir = out_dir / f"seg{k}"
+        if _done(seg_dir, max_steps) is not None:
+            log.info("segment %d: trained before (%s), not trained again", k,
+                     seg_dir / "done.json")
+            continue
+        modules[k], w = train_segment(cfg, props, train, heldout, k, segments[k], out_dir, wall)
         wall += w
-    steps = sum(int(m.global_step) for m in modules.values())
-    merge_curves([out_dir / f"seg{k}" for k in todo], out_dir / "curve.csv")
-    metrics: dict[str, Any] = {**info, "status": "ok", "error": None, "wall_s": wall,
-                               "steps": steps, "sec_per_it": wall / max(steps, 1),
-                               "nonfinite_steps": sum(m.nonfinite_total for m in modules.values()),
+        atomic_write_json(seg_dir / "done.json", {
+            "max_steps": max_steps, "steps": int(modules[k].global_step), "wall_s": w,
+            "nonfinite_steps": modules[k].nonfinite_total})
+    dones = [_done(out_dir / f"seg{k}", max_steps) for k in range(len(segments))]
+    metrics: dict[str, Any] = {**info, "status": "ok", "error": None, "max_steps": max_steps,
                                "segments": [[s.start, s.end] for s in segments]}
-    if cfg.evaluate and heldout is not None and len(modules) == len(segments):
-        fields = [modules[k].field.eval() for k in range(len(segments))]
-        renderer = modules[0].renderer
-        views = list(range(heldout.n_views)) if cfg.data.eval_views is None else list(cfg.data.eval_views)
+    if any(d is None for d in dones):
+        missing = [k for k, d in enumerate(dones) if d is None]
+        log.info("segments %s not trained yet: the run is evaluated when they are", missing)
+        return {**metrics, "status": "partial", "missing_segments": missing}
+    steps = sum(int(d["steps"]) for d in dones)
+    wall_all = sum(float(d["wall_s"]) for d in dones)
+    metrics.update({"wall_s": wall_all, "steps": steps, "sec_per_it": wall_all / max(steps, 1),
+                    "nonfinite_steps": sum(int(d["nonfinite_steps"]) for d in dones)})
+    merge_curves([out_dir / f"seg{k}" for k in range(len(segments))], out_dir / "curve.csv")
+    if cfg.evaluate and heldout is not None:
+        models = [(modules[k].field.eval(), modules[k].renderer) if k in modules
+                  else load_segment(cfg, props, out_dir / f"seg{k}")
+                  for k in range(len(segments))]
+        views = (list(range(heldout.n_views)) if cfg.data.eval_views is None
+                 else list(cfg.data.eval_views))
         frames = list(range(0, len(heldout.frame_times), int(cfg.data.eval_every_frames)))
-        renders = render_heldout(fields, segments, renderer, heldout, views, frames,
+        renders = render_heldout(models, segments, heldout, views, frames,
                                  chunk=cfg.trainer.chunk)
         write_renders(renders, heldout, views, frames, out_dir)
         metrics.update(evaluate_heldout(renders, heldout, views, frames))
@@ -340,40 +475,31 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
     return metrics
 
 
-def evaluate_run(run_dir: Path, ckpt: str = "best", color_correct: bool = False) -> dict:
-    """Re-evaluate a finished or interrupted run from its config and checkpoints."""
+def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False) -> dict:
+    """Re-evaluate a finished or interrupted run from its saved config and checkpoints.
+
+    ``ckpt="last"`` (default) scores the final weights; ``"best"`` the checkpoint that
+    scored best on the held-out views during training (a choice made on the test data
+    itself, so not an unbiased score). Writes ``metrics_eval.json`` (or
+    ``metrics_eval_cc.json`` with colour correction) beside the run's ``metrics.json``.
+    """
     from eventrecon.evaluate import evaluate_heldout, render_heldout, write_renders
 
+    run_dir = Path(run_dir)
     cfg_path = run_dir / ".hydra" / "config.yaml"
     if not cfg_path.exists():
         raise InputError(cfg_path, "<file>", "the run's saved Hydra config")
     cfg = OmegaConf.load(cfg_path)
     ds = load_dataset(cfg)
+    props = scene_properties(cfg, ds)
     heldout = ds.splits.get("validation")
     if heldout is None:
         raise InputError(ds.root, "validation/", "a held-out split to evaluate")
-    segments = resolve_segments(ds.meta.get("segments"), cfg.loss.multiseg)
-    renderer = build_renderer(cfg, ds.meta)
-    fields = []
-    for k in range(len(segments)):
-        d = run_dir / f"seg{k}" / "checkpoints"
-        path = d / f"{ckpt}.ckpt"
-        if not path.exists():
-            path = d / "last.ckpt"
-        if not path.exists():
-            raise InputError(d, f"{ckpt}.ckpt", "a checkpoint of every segment", "missing")
-        state = torch.load(path, map_location="cpu", weights_only=False)
-        field = build_field(cfg.model)
-        sd = state["state_dict"]
-        prepare = getattr(field, "prepare_state_dict", None)
-        if prepare is not None:
-            prepare(sd, prefix="field.")
-        field.load_state_dict({k[6:]: v for k, v in sd.items() if k.startswith("field.")})
-        renderer.clip_scale = state.get("eventrecon", {}).get("clip_scale", 1.0)
-        fields.append(field.eval())
+    segments = resolve_segments(props.segments, cfg.loss.multiseg)
+    models = [load_segment(cfg, props, run_dir / f"seg{k}", ckpt) for k in range(len(segments))]
     views = list(range(heldout.n_views))
     frames = list(range(len(heldout.frame_times)))
-    renders = render_heldout(fields, segments, renderer, heldout, views, frames)
+    renders = render_heldout(models, segments, heldout, views, frames, chunk=cfg.trainer.chunk)
     write_renders(renders, heldout, views, frames, run_dir)
     metrics = {**run_info(cfg, ds.meta), "checkpoint": ckpt,
                **evaluate_heldout(renders, heldout, views, frames, color_correct=color_correct)}

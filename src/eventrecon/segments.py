@@ -12,7 +12,7 @@ which is the authors' "decode ^2.2, linear ramp, re-encode" on saved frames.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 from eventrecon.data.batcher import Segment
 

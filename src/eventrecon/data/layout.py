@@ -40,7 +40,13 @@ from pathlib import Path
 import numpy as np
 
 from eventrecon.data.files import (
-    RIGID_TOL, check_rigid, read_events_npz, read_intrinsics, read_json, read_png, read_pose,
+    RIGID_TOL,
+    check_rigid,
+    read_events_npz,
+    read_intrinsics,
+    read_json,
+    read_png,
+    read_pose,
 )
 from eventrecon.data.types import Dataset, EventStream, SplitData
 from eventrecon.errors import InputError

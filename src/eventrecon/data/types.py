@@ -48,7 +48,7 @@ class EventStream:
         return int(self.t.shape[0])
 
     @staticmethod
-    def empty() -> "EventStream":
+    def empty() -> EventStream:
         return EventStream(np.zeros(0, np.int16), np.zeros(0, np.int16),
                            np.zeros(0, np.float64), np.zeros(0, np.int8))
 

@@ -28,7 +28,7 @@ events at ``t_k == t`` included.
 from __future__ import annotations
 
 import logging
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -125,7 +125,7 @@ class DecayedEvents:
     @classmethod
     def from_streams(cls, streams: Sequence[EventStream], height: int, width: int,
                      decay: float = 1.0,
-                     device: str | torch.device | None = None) -> "DecayedEvents":
+                     device: str | torch.device | None = None) -> DecayedEvents:
         """Build from one :class:`EventStream` per view (vectorised; a loop over views).
 
         Args:
@@ -163,7 +163,7 @@ class DecayedEvents:
         times, rank = torch.unique(t, sorted=True, return_inverse=True)
         stride = times.shape[0] + 1
         if n_pix * stride >= _KEY_LIMIT:
-            raise InputError("events", "size", f"views·H·W·(distinct times+1) < 2^62",
+            raise InputError("events", "size", "views·H·W·(distinct times+1) < 2^62",
                              n_pix * stride)
         keys, order = torch.sort(pix * stride + rank + 1, stable=True)
         p = p[order]
@@ -177,7 +177,7 @@ class DecayedEvents:
                   keys.shape[0], len(streams), times.shape[0], decay)
         return cls(keys, values, times, offsets, len(streams), height, width, decay)
 
-    def to(self, device: str | torch.device) -> "DecayedEvents":
+    def to(self, device: str | torch.device) -> DecayedEvents:
         """A copy with every buffer on ``device``."""
         return DecayedEvents(self.keys.to(device), self.values.to(device),
                              self.times.to(device), self.offsets.to(device),

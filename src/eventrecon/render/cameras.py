@@ -25,9 +25,9 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import torch
 from torch import Tensor
@@ -161,7 +161,7 @@ class Cameras:
         """Pickle without the ray cache (it is rebuilt on demand)."""
         return {**self.__dict__, "_rays_cache": {}}
 
-    def select(self, idx: Sequence[int]) -> "Cameras":
+    def select(self, idx: Sequence[int]) -> Cameras:
         """The cameras at positions ``idx`` (in that order)."""
         ii = torch.as_tensor(list(idx), dtype=torch.long)
         return Cameras(self.K[ii], self.dist[ii], self.c2w[ii], self.width, self.height,

@@ -17,6 +17,19 @@ from torch import Tensor
 __all__ = ["stratified", "sample_pdf", "interval_edges"]
 
 
+def uniform(shape: tuple[int, ...], gen: torch.Generator | None, like: Tensor) -> Tensor:
+    """``U[0, 1)`` draws of ``shape`` with ``like``'s dtype and device.
+
+    The draws are made on the generator's own device and then moved, so a CPU generator
+    (the training step's ``(seed, step)`` generator) works for rays on a GPU and the
+    numbers do not depend on where the rays live.
+    """
+    if gen is None:
+        return torch.rand(shape, device=like.device, dtype=like.dtype)
+    u = torch.rand(shape, generator=gen, device=gen.device, dtype=like.dtype)
+    return u.to(like.device)
+
+
 def stratified(
     near: Tensor, far: Tensor, n: int, perturb: bool, gen: torch.Generator | None = None
 ) -> Tensor:
@@ -39,7 +52,7 @@ def stratified(
     """
     shape = (near.shape[0], n)
     if perturb:
-        u = torch.rand(shape, generator=gen, device=near.device, dtype=near.dtype)
+        u = uniform(shape, gen, near)
     else:
         u = torch.full(shape, 0.5, device=near.device, dtype=near.dtype)
     i = torch.arange(n, device=near.device, dtype=near.dtype)
@@ -105,8 +118,7 @@ def sample_pdf(
         u = (torch.arange(n, device=bins.device, dtype=bins.dtype) + 0.5) / n
         u = u.expand(n_rays, n).contiguous()
     else:
-        u = torch.rand((n_rays, n), generator=gen, device=bins.device, dtype=bins.dtype)
-        u = u.sort(dim=-1).values
+        u = uniform((n_rays, n), gen, bins).sort(dim=-1).values
     hi = torch.searchsorted(cdf.contiguous(), u, right=True).clamp(1, m)
     lo = hi - 1
     cdf_lo, cdf_hi = cdf.gather(1, lo), cdf.gather(1, hi)

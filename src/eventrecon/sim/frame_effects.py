@@ -24,8 +24,8 @@ bayer_raw                           single-channel RGGB mosaic ``[H, W]``
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 

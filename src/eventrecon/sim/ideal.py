@@ -26,8 +26,8 @@ in its current interval at once), usually one round per iteration.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 

@@ -12,9 +12,9 @@ class reads and checks them (``self.p[name]``).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 from eventrecon.errors import InputError
 from eventrecon.sim.config import MISSING, get
