@@ -118,15 +118,21 @@ def upsample_grid(grid: Tensor, size: Sequence[int]) -> Tensor:
     return out[0]
 
 
-def total_variation(grid: Tensor) -> Tensor:
-    """Mean squared forward difference, summed over the grid axes.
+def total_variation(grid: Tensor, dims: Sequence[int] | None = None) -> Tensor:
+    """Mean squared forward difference, summed over grid axes.
 
-    ``TV(g) = sum_k mean((g[..., i_k + 1, ...] - g[..., i_k, ...])^2)``; a scalar.
+    ``TV(g) = sum_k mean((g[..., i_k + 1, ...] - g[..., i_k, ...])^2)`` over the axes
+    ``k`` in ``dims`` (tensor dimensions; default every axis after the channel axis 0);
+    a scalar.
 
     >>> float(total_variation(torch.tensor([[0.0, 1.0, 3.0]])))
     2.5
+    >>> g = torch.tensor([[[0.0, 2.0], [1.0, 3.0]]])   # [C=1, 2, 2]
+    >>> float(total_variation(g, dims=(1,))), float(total_variation(g, dims=(2,)))
+    (1.0, 4.0)
     """
-    return sum(grid.diff(dim=k).square().mean() for k in range(1, grid.dim()))
+    dims = range(1, grid.dim()) if dims is None else dims
+    return sum(grid.diff(dim=k).square().mean() for k in dims)
 
 
 def geometric_resolutions(start: Sequence[int], end: Sequence[int], n_steps: int

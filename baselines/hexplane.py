@@ -12,8 +12,10 @@ by a linear basis (or a small MLP). Density ``trunc_exp``, colour ``sigmoid``
 (:mod:`baselines.heads`). Growth as TensoRF-CP (:class:`~baselines.schedules.GridGrowth`).
 Spatial planes start as N(0, init_scale^2), time planes as 1 + N(0, 1e-2).
 
-:meth:`HexPlaneField.regularization` is total variation
-``tv_space * sum_spatial TV(P) + tv_time * sum_spacetime TV(P)`` (time weighted more).
+:meth:`HexPlaneField.regularization` is total variation with the time direction weighted
+on its own (HexPlane's spatial TV plus a stronger temporal smoothness):
+``tv_space * [sum_spatial TV(P) + sum_spacetime TV_space(P)] + tv_time * sum_spacetime TV_t(P)``,
+where ``TV_space`` / ``TV_t`` difference a space-time plane along its spatial / its time axis.
 Paper scale: 500^3 x 24, rank 8, lr 1e-2.
 """
 
@@ -66,8 +68,12 @@ class HexPlaneField(FactorisedField):
         return torch.cat([x[:r] for x in g]), torch.cat([x[r:] for x in g])
 
     def regularization(self) -> Tensor:
-        """``tv_space * sum TV(spatial planes) + tv_time * sum TV(space-time planes)``."""
+        """TV along space at ``tv_space``, along time at ``tv_time`` (module docstring).
+
+        Space-time planes are ``[2R, R_space, R_t]``: dim 1 is space, dim 2 is time.
+        """
         f = self.grids.factors
         space = sum(total_variation(f[p]) for p in range(3))
-        time = sum(total_variation(f[p + 3]) for p in range(3))
+        space = space + sum(total_variation(f[p + 3], dims=(1,)) for p in range(3))
+        time = sum(total_variation(f[p + 3], dims=(2,)) for p in range(3))
         return self.tv_space * space + self.tv_time * time

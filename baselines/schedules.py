@@ -47,9 +47,17 @@ class GrowthPlan:
     until: float
 
     def steps(self, total: int) -> list[int]:
-        """Training steps at which the grid is upsampled."""
+        """Training steps at which the grid is upsampled.
+
+        ``s_k = round(k / K · until · total)``, at most ``total − 1`` so that the final
+        resolution is always reached (``until = 1`` grows until the last step).
+
+        >>> GrowthPlan((16,), (64,), 2, 1.0).steps(100)
+        [50, 99]
+        """
         k_max = self.n_growth
-        return [int(round(k / k_max * self.until * total)) for k in range(1, k_max + 1)]
+        return [min(int(round(k / k_max * self.until * total)), max(total - 1, 0))
+                for k in range(1, k_max + 1)]
 
     def resolution_at(self, step: int, total: int) -> tuple[int, ...]:
         """Resolution the grid must have when training step ``step`` starts."""

@@ -349,3 +349,18 @@ def test_model_configs_compose(name, cls, checks):
 def test_hexplane_pairs_are_complementary():
     for s, t in PAIRS:
         assert sorted(s + t) == [0, 1, 2, 3] and 3 in t
+
+
+def test_hexplane_tv_weights_time_and_space_separately():
+    """A space-time plane varying only along t costs tv_time; only along space, tv_space."""
+    f = HexPlaneField(rank=1, resolution_init=(4, 4, 4, 5), resolution_final=(4, 4, 4, 5),
+                      n_growth=0, tv_space=1.0, tv_time=100.0)
+    with torch.no_grad():
+        for p in f.grids.factors:
+            p.fill_(1.0)
+        assert float(f.regularization()) == 0.0  # constant planes: no variation
+        zt = f.grids.factors[3]  # the (z, t) plane: [2R, R_z, R_t]
+        zt.copy_(torch.arange(5.0).expand_as(zt))  # ramp of slope 1 along t only
+        assert float(f.regularization()) == pytest.approx(100.0 * 1.0)
+        zt.copy_(torch.arange(4.0)[:, None].expand_as(zt))  # ramp along z only
+        assert float(f.regularization()) == pytest.approx(1.0 * 1.0)

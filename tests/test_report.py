@@ -181,9 +181,10 @@ def test_accuracy_vs_time_known_curve_and_png(tmp_path):
               _curve([0.5, 1.5], [16.0, 17.0], ["cheap", "cheap"]))
     runs = collect_runs([sweep])
     s = summarize(runs[0])
-    # full rows only: (1,12) (3,18) (4,22) (6,25) → 15 dB at 3 s, 20 at 4 s, 25 at 6 s, 30 never
-    assert s.kind == "full" and s.times == {15.0: 3.0, 20.0: 4.0, 25.0: 6.0, 30.0: None}
-    assert s.best_psnr == 25.0
+    # every row: (1,12) (2,21) (3,18) (4,22) (5,26) (6,25) → 15 dB at 2 s, 20 at 2 s,
+    # 25 at 5 s, 30 never
+    assert s.kind == "cheap+full" and s.times == {15.0: 2.0, 20.0: 2.0, 25.0: 5.0, 30.0: None}
+    assert s.best_psnr == 26.0
     s1 = summarize(runs[1])
     assert s1.kind == "cheap" and s1.times[15.0] == 0.5 and s1.times[20.0] is None
     assert time_to_level(np.array([3.0, 1.0]), np.array([30.0, np.nan]), 20.0) == 3.0
@@ -198,8 +199,8 @@ def test_accuracy_vs_time_known_curve_and_png(tmp_path):
     md = (out / "accuracy_vs_time.md").read_text()
     row = next(line for line in md.splitlines() if line.startswith("| nerf"))
     cells = [c.strip() for c in row.strip("|").split("|")]
-    assert cells[3:8] == ["full", "3.0", "4.0", "6.0", "—"]
-    assert cells[8:10] == ["25.00", "25.50"]
+    assert cells[3:8] == ["cheap+full", "2.0", "2.0", "5.0", "—"]
+    assert cells[8:10] == ["26.00", "25.50"]
     for key in PAPER_TABLES:
         assert (out / f"{key}.md").stat().st_size > 0 and (out / f"{key}.tex").is_file()
 

@@ -107,7 +107,7 @@ def test_ensure_dataset_caches_and_crash_leaves_nothing(tmp_path, monkeypatch):
     monkeypatch.setattr(writer, "_fill_split", crash)
     with pytest.raises(KeyboardInterrupt):
         ensure_dataset(tiny(seed=5, events=[], frames=[]), tmp_path)
-    assert sorted(x.name for x in tmp_path.iterdir()) == [p.name]
+    assert sorted(x.name for x in tmp_path.iterdir() if x.name != pipeline.LOCKS) == [p.name]
 
 
 def test_static_plus_shot_noise_rate_within_5_percent():
@@ -137,3 +137,35 @@ def test_static_library_scene_zero_events_at_small_size():
     ds = simulate_dataset(cfg)
     assert sum(len(e) for e in ds.splits["train"].events) == 0
     assert ds.meta["sim"]["pixel_samples"] == 0
+
+
+def test_parallel_callers_simulate_once_and_both_get_the_dataset(tmp_path: Path):
+    """Two processes (a joblib sweep) asking for the same missing scene at the same time:
+    one simulates, the other waits on the lock and reuses it; both see the same folder."""
+    import json
+    import subprocess
+    import sys
+
+    cfg = json.dumps(tiny(name="race", events=[], frames=[]))
+    code = ("import json, logging, sys\n"
+            "logging.basicConfig(level=logging.INFO, format='%(name)s %(message)s')\n"
+            "from eventrecon.sim.pipeline import ensure_dataset\n"
+            f"print(ensure_dataset(json.loads({cfg!r}), {str(tmp_path)!r}))\n")
+    import fcntl
+    import time
+
+    lock = tmp_path / pipeline.LOCKS / f"{dataset_path(json.loads(cfg), tmp_path).name}.lock"
+    lock.parent.mkdir(parents=True)
+    with open(lock, "a") as held:  # hold the lock so that both callers queue on it
+        fcntl.flock(held.fileno(), fcntl.LOCK_EX)
+        procs = [subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True) for _ in range(2)]
+        time.sleep(4.0)  # both have imported and found no dataset by now
+        assert all(p.poll() is None for p in procs)  # ...and wait on the lock
+        fcntl.flock(held.fileno(), fcntl.LOCK_UN)
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [e[-2000:] for _, e in outs]
+    assert outs[0][0] == outs[1][0]  # the same dataset path
+    logs = "".join(e for _, e in outs)
+    assert logs.count("simulated race") == 1, logs[-3000:]
+    assert (Path(outs[0][0].strip()) / "meta.json").is_file()

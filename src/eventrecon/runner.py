@@ -14,7 +14,6 @@ import importlib
 import json
 import logging
 import math
-import resource
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -34,11 +33,12 @@ from eventrecon.data.types import Dataset, SplitData
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.losses import LossConfig
+from eventrecon.memory import peak_mb, reset_peak
 from eventrecon.module import EventNeRFModule, StepConfig, field_class_name
 from eventrecon.render.volume import Renderer
 from eventrecon.segments import resolve_segments
 
-__all__ = ["run", "load_dataset", "scene_properties", "build_field", "build_renderer",
+__all__ = ["run", "load_dataset", "segment_steps", "scene_properties", "build_field", "build_renderer",
            "build_module", "loss_config", "event_decay", "select_views", "select_fps",
            "train_segment", "load_segment", "evaluate_run", "run_info", "planned_run_info",
            "check_checkpoint"]
@@ -274,7 +274,21 @@ def flat_hparams(cfg: DictConfig) -> dict[str, Any]:
     return out
 
 
-def _trainer(cfg: DictConfig, seg_dir: Path, callbacks: list, k: int) -> L.Trainer:
+def segment_steps(cfg: DictConfig, n_segments: int) -> int:
+    """Optimiser steps of each segment: ``trainer.max_steps`` (the paper: every segment
+    trains as long as a one-segment run), or with ``trainer.split_steps=true`` the run's
+    budget ``ceil(max_steps / n_segments)`` (equal compute for any number of segments,
+    the CPU sweeps' choice).
+
+    >>> segment_steps(OmegaConf.create({"trainer": {"max_steps": 1000, "split_steps": True}}), 3)
+    334
+    """
+    total = int(cfg.trainer.max_steps)
+    return math.ceil(total / n_segments) if cfg.trainer.get("split_steps") else total
+
+
+def _trainer(cfg: DictConfig, seg_dir: Path, callbacks: list, k: int,
+             max_steps: int) -> L.Trainer:
     from lightning.pytorch.callbacks import ModelCheckpoint
 
     ckpt = ModelCheckpoint(dirpath=seg_dir / "checkpoints", save_last=True, save_top_k=0,
@@ -285,7 +299,7 @@ def _trainer(cfg: DictConfig, seg_dir: Path, callbacks: list, k: int) -> L.Train
         logger = get_class(lg.pop("_target_"))(save_dir=str(seg_dir.parent), version=f"seg{k}", **lg)
         logger.log_hyperparams(flat_hparams(cfg))
     kwargs = OmegaConf.to_container(cfg.trainer.lightning, resolve=True)
-    return L.Trainer(max_steps=cfg.trainer.max_steps, default_root_dir=str(seg_dir),
+    return L.Trainer(max_steps=max_steps, default_root_dir=str(seg_dir),
                      logger=logger, callbacks=[ckpt, *callbacks],
                      plugins=[AtomicCheckpointIO()], log_every_n_steps=cfg.trainer.log_every,
                      enable_model_summary=False, **kwargs)
@@ -293,8 +307,11 @@ def _trainer(cfg: DictConfig, seg_dir: Path, callbacks: list, k: int) -> L.Train
 
 def train_segment(cfg: DictConfig, props: SceneProperties, train: SplitData,
                   heldout: SplitData | None, k: int, seg: Segment, out_dir: Path,
-                  wall_offset: float = 0.0) -> tuple[EventNeRFModule, float]:
-    """Train (or resume) segment ``k``; returns the module and its training seconds."""
+                  wall_offset: float = 0.0, max_steps: int | None = None
+                  ) -> tuple[EventNeRFModule, float]:
+    """Train (or resume) segment ``k`` for ``max_steps`` (default ``trainer.max_steps``);
+    returns the module and its training seconds."""
+    max_steps = int(cfg.trainer.max_steps) if max_steps is None else int(max_steps)
     from eventrecon.callbacks import HeldOutMonitor
 
     seg_dir = out_dir / f"seg{k}"
@@ -310,7 +327,7 @@ def train_segment(cfg: DictConfig, props: SceneProperties, train: SplitData,
                                  cfg.trainer.curve_pixels, cfg.trainer.chunk, cfg.seed,
                                  wall_offset)
         callbacks.append(monitor)
-    trainer = _trainer(cfg, seg_dir, callbacks, k)
+    trainer = _trainer(cfg, seg_dir, callbacks, k, max_steps)
     ckpt = None
     removed = remove_stale_temporaries(seg_dir / "checkpoints")
     if removed:
@@ -366,12 +383,6 @@ def check_checkpoint(path: str | Path, field: Field) -> None:
                          f"a checkpoint of {mine} (this run's model)", theirs)
 
 
-def _peak_mem_mb() -> float:
-    if torch.cuda.is_available():
-        return torch.cuda.max_memory_allocated() / 2**20
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
 def _done(seg_dir: Path, max_steps: int) -> dict | None:
     """The ``done.json`` of a segment trained to at least ``max_steps``, else ``None``."""
     path = seg_dir / "done.json"
@@ -417,6 +428,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
+    reset_peak()
     ds = load_dataset(cfg)
     if "train" not in ds.splits:
         raise InputError(ds.root, "train/", "a training split")
@@ -430,7 +442,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
                          f"a segment index in [0, {len(segments) - 1}]", cfg.data.segment)
     todo = range(len(segments)) if cfg.data.segment is None else [int(cfg.data.segment)]
     info = run_info(cfg, ds.meta, views=train.n_views, fps=cfg.data.fps or props.rgb_fps)
-    max_steps = int(cfg.trainer.max_steps)
+    max_steps = segment_steps(cfg, len(segments))
     log.info("run %s: %d training views, %d RGB frames, %d segment(s), %d steps each",
              info, train.n_views, len(train.frame_times), len(segments), max_steps)
     modules: dict[int, EventNeRFModule] = {}
@@ -441,13 +453,16 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
             log.info("segment %d: trained before (%s), not trained again", k,
                      seg_dir / "done.json")
             continue
-        modules[k], w = train_segment(cfg, props, train, heldout, k, segments[k], out_dir, wall)
+        modules[k], w = train_segment(cfg, props, train, heldout, k, segments[k], out_dir, wall,
+                                      max_steps)
         wall += w
         atomic_write_json(seg_dir / "done.json", {
             "max_steps": max_steps, "steps": int(modules[k].global_step), "wall_s": w,
             "nonfinite_steps": modules[k].nonfinite_total})
     dones = [_done(out_dir / f"seg{k}", max_steps) for k in range(len(segments))]
-    metrics: dict[str, Any] = {**info, "status": "ok", "error": None, "max_steps": max_steps,
+    metrics: dict[str, Any] = {**info, "status": "ok", "error": None,
+                               "max_steps": int(cfg.trainer.max_steps),
+                               "steps_per_segment": max_steps,
                                "segments": [[s.start, s.end] for s in segments]}
     if any(d is None for d in dones):
         missing = [k for k, d in enumerate(dones) if d is None]
@@ -469,7 +484,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
                                  chunk=cfg.trainer.chunk)
         write_renders(renders, heldout, views, frames, out_dir)
         metrics.update(evaluate_heldout(renders, heldout, views, frames))
-    metrics["peak_mem_mb"] = _peak_mem_mb()
+    metrics["peak_mem_mb"] = peak_mb()
     metrics["total_s"] = time.perf_counter() - t_start
     atomic_write_json(out_dir / "metrics.json", metrics)
     return metrics

@@ -41,11 +41,13 @@ def build_report(
     tables: Sequence[str] = tuple(PAPER_TABLES),
     real_scene: str = REAL_SCENE,
     levels: Sequence[float] = DEFAULT_LEVELS,
+    curves_experiment: str | None = "table3",
 ) -> list[Path]:
     """Collect the runs under ``dirs`` and write every table and the accuracy-vs-time
-    figure and table into ``out``. Returns the written paths."""
+    figure and table (``loss=full`` runs of ``curves_experiment``) into ``out``.
+    Returns the written paths."""
     runs = collect_runs(dirs)
     log.info("found %d runs (%d ok)", len(runs), sum(r.ok for r in runs))
     paths = write_tables(runs, out, tables, real_scene=real_scene)
-    paths += write_accuracy_vs_time(runs, out, levels)
+    paths += write_accuracy_vs_time(runs, out, levels, curves_experiment)
     return paths

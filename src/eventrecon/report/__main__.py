@@ -32,10 +32,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--levels", type=float, nargs="+", default=list(DEFAULT_LEVELS), help="PSNR levels [dB]"
     )
+    ap.add_argument(
+        "--curves-experiment", default="table3",
+        help="sweep whose loss=full runs make the accuracy-vs-time comparison (default table3)"
+    )
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
-        paths = build_report(args.dirs, args.out, args.tables, args.real_scene, args.levels)
+        paths = build_report(args.dirs, args.out, args.tables, args.real_scene, args.levels,
+                             args.curves_experiment)
     except InputError as exc:
         log.error("%s", exc)
         return 2

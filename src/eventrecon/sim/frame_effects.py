@@ -16,7 +16,8 @@ low_light (photons, read_noise)     ``I ← Poisson(photons·I)/photons + N(0, r
 crf (eps, gain)                     the rig's linear CRF with offset,
                                     ``clip(gain·I − eps, 0, 1)``
                                     (:func:`eventrecon.capture.crf_model.apply_crf`)
-quantize_8bit                       ``round(255·clip(I, 0, 1))/255`` (linear 8-bit ADC)
+quantize_8bit                       ``round(255·clip(I, 0, 1))/255`` (linear 8-bit ADC;
+                                    the PNG's gamma encoding then rounds again)
 bayer_raw                           single-channel RGGB mosaic ``[H, W]``
 =================================== =====================================================
 """
@@ -116,6 +117,13 @@ class Quantize8bit(Effect):
     name = "quantize_8bit"
 
     def apply(self, img: np.ndarray, ctx: FrameContext, rng: np.random.Generator) -> np.ndarray:
+        """A linear 8-bit ADC, as the DAVIS APS readout (value ∝ light through the CRF).
+
+        The dataset stores frames gamma-encoded (``PNG = round(255·I^(1/2.2))``, the
+        method's convention), which rounds a second time: in the shadows the encoded
+        levels are finer than the ADC's, so the ADC steps survive; above ``I ≈ 0.99``
+        neighbouring ADC levels (e.g. 254/255 and 1) fall on the same PNG value.
+        """
         return np.round(255.0 * np.clip(img, 0.0, 1.0)) / 255.0
 
 

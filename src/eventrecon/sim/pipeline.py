@@ -117,13 +117,36 @@ def ensure_dataset(scene_cfg: object, data_dir: str | Path = "data",
     """Path of the simulated dataset of ``scene_cfg``; simulate and write it if missing.
 
     The folder appears atomically (temporary folder + rename), so a crash or Ctrl-C
-    leaves no partial dataset behind and the next call simply simulates again.
+    leaves no partial dataset behind and the next call simply simulates again. Parallel
+    callers (a joblib sweep) serialise on an exclusive lock file beside the folder: the
+    first simulates, the others wait and then find it.
     """
     path = dataset_path(scene_cfg, data_dir)
     if (path / "meta.json").is_file():
         log.info("dataset %s exists; not simulating again", path)
         return path
-    ds = simulate_dataset(scene_cfg, path, threads=threads)
-    write_dataset(ds, path, overwrite=path.exists())
+    with _exclusive(path.parent / LOCKS / f"{path.name}.lock"):
+        if (path / "meta.json").is_file():  # another process wrote it while we waited
+            return path
+        ds = simulate_dataset(scene_cfg, path, threads=threads)
+        write_dataset(ds, path, overwrite=path.exists())
     log.info("wrote %s", path)
     return path
+
+
+#: Folder (inside the data folder) of the lock files of :func:`ensure_dataset`.
+LOCKS = ".locks"
+
+
+@contextmanager
+def _exclusive(lock_path: Path) -> Iterator[None]:
+    """An exclusive advisory lock (``flock``) on ``lock_path``, released on exit or death."""
+    import fcntl
+
+    lock_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(lock_path, "a") as f:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
