@@ -85,6 +85,19 @@ def _camdict_missing_w2c(s: Path) -> None:
     _camdict(s, json.dumps(cd))
 
 
+def _camdict_entry(s: Path, key: str, value) -> None:
+    cd = json.loads((s / "camdict.json").read_text())
+    cd["01.png"][key] = value
+    _camdict(s, json.dumps(cd))
+
+
+def _camdict_only(s: Path, key: str, value) -> None:
+    """Cameras from camdict.json alone (no intrinsics/, pose/), one entry broken."""
+    shutil.rmtree(s / "intrinsics")
+    shutil.rmtree(s / "pose")
+    _camdict_entry(s, key, value)
+
+
 def _wrong_size_frame(s: Path) -> None:
     import imageio.v3 as iio
     iio.imwrite(s / "rgb" / "0200" / "01.png", np.zeros((21, 30, 3), np.uint8))
@@ -147,7 +160,17 @@ CASES: dict[str, tuple[Callable[[Path], None], str]] = {
     "camdict missing W2C": (_camdict_missing_w2c, r"camdict\.json: 01\.png\.W2C: expected a value"),
     "camdict wrong type": (lambda s: _camdict(s, json.dumps({"00.png": {"K": "eye", "W2C": [],
                                                                         "img_size": [30, 20]}})),
-                           r"camdict\.json: <entries>: expected per-image objects"),
+                           r"camdict\.json: 00\.png\.K/W2C/dist: expected lists of numbers"),
+    "camdict K with NaN": (lambda s: _camdict_only(s, "K", [float("nan")] + [0.0] * 15),
+                           r"camdict\.json: 01\.png\.K: expected \[\[fx"),
+    "camdict negative focal length": (
+        lambda s: _camdict_only(s, "K", [-25.0, 0, 14.5, 0, 0, 26.0, 9.5, 0, 0, 0, 1, 0,
+                                         0, 0, 0, 1]),
+        r"camdict\.json: 01\.png\.K: expected \[\[fx, s, cx\].*fx, fy > 0"),
+    "camdict short dist": (lambda s: _camdict_only(s, "dist", [-0.4, 0.2]),
+                           r"camdict\.json: 01\.png\.dist: expected 4 or 5 finite numbers"),
+    "camdict non-rigid W2C": (lambda s: _camdict_only(s, "W2C", (2.0 * np.eye(4)).ravel().tolist()),
+                              r"camdict\.json: 01\.png\.W2C: .*non-rigid pose"),
     "camdict img_size vs PNGs": (
         lambda s: _camdict(s, (s / "camdict.json").read_text().replace("[30, 20]", "[346, 260]")),
         r"camdict\.json: img_size: expected \[30, 20\] as the PNGs"),

@@ -9,24 +9,28 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import dv_processing as dv  # a test dependency ([test] extra): a missing one fails, never skips
 import numpy as np
 import pytest
 
-dv = pytest.importorskip("dv_processing")
-
-from eventrecon.convert import convert_aedat4, main  # noqa: E402
-from eventrecon.data.layout import read_split  # noqa: E402
-from eventrecon.errors import InputError  # noqa: E402
-from eventrecon.render.cameras import cameras_to_camdict, ring_rig  # noqa: E402
+from eventrecon.convert import convert_aedat4, main
+from eventrecon.data.layout import read_split
+from eventrecon.errors import InputError
+from eventrecon.render.cameras import cameras_to_camdict, ring_rig
 
 W, H = 40, 30
 T0 = 1_700_000_000_000_000  # µs, a wall-clock-like shared timestamp
 FRAME_DT = 33_333  # µs, ~30 fps APS frames
 
 
+#: External sync pulses every camera receives (µs after T0): rising and falling edges.
+PULSES = (200_000, 200_500, 900_000, 900_500, 1_600_000, 1_600_500)
+
+
 def write_camera(path: Path, rng: np.random.Generator, offset_us: int, duration_us: int,
-                 grey: bool = False) -> dict:
-    """One camera: random events over [T0+offset, T0+offset+duration], frames every 33 ms."""
+                 grey: bool = False, trigger_skew_us: int = 0) -> dict:
+    """One camera: random events over [T0+offset, T0+offset+duration], frames every 33 ms,
+    the external pulses of :data:`PULSES` (shifted by ``trigger_skew_us``) as triggers."""
     cfg = dv.io.MonoCameraWriter.DAVISConfig(f"DAVIS346_{path.stem}", (W, H))
     writer = dv.io.MonoCameraWriter(str(path), cfg)
     n = 4000
@@ -49,8 +53,15 @@ def write_camera(path: Path, rng: np.random.Generator, offset_us: int, duration_
         ft += FRAME_DT + int(rng.integers(-200, 200))
         k += 1
     writer.writeEvents(store)
+    triggers = dv.TriggerPacket()
+    kinds = (dv.TriggerType.EXTERNAL_SIGNAL_RISING_EDGE, dv.TriggerType.EXTERNAL_SIGNAL_FALLING_EDGE)
+    trig_t = [T0 + p + trigger_skew_us for p in PULSES]
+    for k, tt in enumerate(trig_t):
+        triggers.elements.append(dv.Trigger(int(tt), kinds[k % 2]))
+    writer.writeTriggerPacket(triggers)
     del writer  # flushes and closes the file
-    return dict(t=t, x=x, y=y, on=on, frames=frames, frame_t=np.array(frame_t))
+    return dict(t=t, x=x, y=y, on=on, frames=frames, frame_t=np.array(frame_t),
+                trig_t=np.array(trig_t, np.int64), trig_source=[1, 2] * (len(PULSES) // 2))
 
 
 @pytest.fixture(scope="module")
@@ -91,7 +102,16 @@ def test_round_trip(rig):
         np.testing.assert_array_equal(sp.background[v], cam["frames"][jb])
     meta = json.loads((out / "meta.json").read_text())
     assert (meta["start_us"], meta["end_us"], meta["duration_s"]) == (start, end, 1.0)
-    assert meta["tonemap_eps"] == 3e-2 and meta["decay"] == 0.93
+    assert meta["tonemap_eps"] == 3e-2 and meta["decay"] == 0.93 and meta["bayer"] is True
+    assert len(meta["segments"]) == 5 and meta["segments"][0] == [0.0, 210.0]
+    # the triggers inside the cut, exactly: µs, normalised time, source
+    for v, cam in enumerate(cams):
+        keep = (cam["trig_t"] >= start) & (cam["trig_t"] <= end)
+        trig = meta["triggers"][f"{v:02d}"]
+        assert trig["t_us"] == cam["trig_t"][keep].tolist()
+        assert trig["source"] == np.array(cam["trig_source"])[keep].tolist()
+        np.testing.assert_allclose(trig["t"], (cam["trig_t"][keep] - start) * 1e-3, atol=1e-9)
+    assert meta["triggers"]["00"]["t_us"] == [T0 + 900_000, T0 + 900_500]
 
 
 def test_default_span_and_cli(rig, tmp_path):
@@ -120,6 +140,20 @@ def test_greyscale_frames_become_bayer_raw(tmp_path):
     j = int(np.argmin(np.abs(cam["frame_t"] - (T0 + 250_000))))
     assert img.shape == (H, W)
     np.testing.assert_array_equal(img, cam["frames"][j])
+
+
+def test_unsynchronised_cameras_are_caught_by_their_triggers(tmp_path, rig):
+    root, _ = rig
+    rng = np.random.default_rng(3)
+    write_camera(tmp_path / "skewed.aedat4", rng, 0, 2_000_000, trigger_skew_us=800)
+    with pytest.raises(InputError, match=r"skewed\.aedat4: triggers: expected external trigger 0 "
+                                         r"at the time of cam0\.aedat4's \(±100 µs.*got "
+                                         rf"{T0 + 200_800} vs {T0 + 200_000} µs"):
+        convert_aedat4([root / "cam0.aedat4", tmp_path / "skewed.aedat4"], tmp_path / "o")
+    # within a looser tolerance the same files convert
+    out = convert_aedat4([root / "cam0.aedat4", tmp_path / "skewed.aedat4"], tmp_path / "o",
+                         sync_tolerance_us=1000)
+    assert (out / "train" / "events" / "01.npz").is_file()
 
 
 def test_bad_recordings(tmp_path, rig):

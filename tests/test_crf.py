@@ -53,6 +53,35 @@ def test_recovers_eps_with_noise_vignetting_and_8bit(seed):
     assert abs(average - 3e-2) > 2e-2
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_recovers_eps_from_the_simulators_own_frame_effects(seed):
+    """The sweep made by the simulator's frame pipeline (conf names, as a scene lists
+    them): flat light × exposure → vignetting → low-light photon + read noise → crf
+    (ε = 3e-2) → 8-bit ADC. Calibration on single pixels recovers ε within 2e-3."""
+    from eventrecon.sim.config import effect_rng
+    from eventrecon.sim.frame_effects import FRAME_EFFECTS, FrameContext
+
+    H, W = 24, 32
+    effects = FRAME_EFFECTS.build([
+        {"name": "vignetting", "strength": 0.5},
+        {"name": "low_light", "photons": 20000.0, "read_noise": 2e-3},
+        {"name": "crf", "eps": 3e-2},
+        {"name": "quantize_8bit"},
+    ], "crf sweep")
+    K = np.array([[30.0, 0, (W - 1) / 2], [0, 30.0, (H - 1) / 2], [0, 0, 1]])
+    ctx = FrameContext(render=lambda t: np.zeros((len(t), H, W)), t=0.5, duration_s=1.0, K=K)
+    frames = []
+    for k, e in enumerate(EXPOSURES):
+        img = np.full((H, W), 0.8 * e)  # constant light: irradiance ∝ exposure time
+        for fx in effects:
+            img = fx.apply(img, ctx, effect_rng(seed, "frames", fx.name, fx.occurrence, k))
+        frames.append(img.reshape(-1))
+    fit = fit_crf(EXPOSURES, np.stack(frames))
+    assert abs(fit.eps - 3e-2) < 2e-3
+    # the vignetting shows as per-pixel slopes from 0.8 (centre) down to 0.4 (corners)
+    assert 0.38 < np.nanmin(fit.gain) < 0.45 and 0.78 < np.nanmax(fit.gain) < 0.82
+
+
 def test_saturated_and_zero_samples_are_excluded():
     v = apply_crf(np.outer(EXPOSURES, [0.9, 1.5]), 3e-2)
     fit = fit_crf(EXPOSURES, v)

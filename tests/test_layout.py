@@ -251,35 +251,55 @@ def test_large_event_file_loads_fast(tmp_path):
     assert time.perf_counter() - t0 < 3.0
 
 
-def test_independent_dataset_trains(scene):
-    """The hand-written dataset trains a few steps: finite losses, parameters move."""
-    try:
-        import lightning as L
+def test_independent_dataset_trains(scene, tmp_path: Path):
+    """The hand-written dataset trains through the user's path (``data.root=``): a few
+    steps, finite losses, evaluated on its validation split."""
+    from eventrecon import runner
+    from integration import TINY, TINY_NERF, tiny_config
 
-        from eventrecon.data.batcher import RayBatcher, Segment
-        from eventrecon.fields.nerf import NeRFField
-        from eventrecon.losses import LossConfig
-        from eventrecon.module import EventNeRFModule, StepConfig
-        from eventrecon.render.volume import Renderer
-    except ImportError as e:  # the trainer is built by another part of the project
-        pytest.skip(f"trainer not yet available ({e})")
     root, _ = scene
-    ds = read_dataset(root)
-    batcher = RayBatcher(ds.splits["train"], Segment(0.0, 1000.0), decay=0.93, bayer=False)
-    field = NeRFField(depth=2, width=32, skip=-1, pos_bands=4, time_bands=2, anneal_steps=10)
-    before = [p.detach().clone() for p in field.parameters()]
-    module = EventNeRFModule(field, Renderer(n_coarse=8, n_fine=8), batcher,
-                             LossConfig(eps=3e-2), StepConfig(n_rays=48, log_every=1))
-    losses: list[float] = []
+    cfg = tiny_config(tmp_path / "unused", "data=real", f"data.root={root}",
+                      "trainer.max_steps=4", "data.eval_every_frames=1",
+                      base=[t for t in TINY if not t.startswith("scene.")] + TINY_NERF)
+    metrics = runner.run(cfg, tmp_path / "run")
+    assert metrics["status"] == "ok" and metrics["steps"] == 5 * 4  # 4 per segment
+    assert metrics["nonfinite_steps"] == 0 and math.isfinite(metrics["psnr"])
+    assert metrics["views"] == V and metrics["segments"] == [[0.0, 210.0], [190.0, 410.0],
+                                                             [390.0, 610.0], [590.0, 810.0],
+                                                             [790.0, 1000.0]]
+    props = runner.scene_properties(cfg, read_dataset(root))
+    # meta.json's eps and decay are overridden by data=real's, and Bayer comes from it
+    assert (props.tonemap_eps, props.decay, props.bayer) == (0.03, 0.93, True)
 
-    class Record(L.Callback):
-        def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx):
-            losses.append(float(outputs["loss"]))
 
-    trainer = L.Trainer(max_steps=4, accelerator="cpu", logger=False, enable_checkpointing=False,
-                        enable_progress_bar=False, enable_model_summary=False,
-                        callbacks=[Record()], default_root_dir=str(root / "run"))
-    trainer.fit(module)
-    assert len(losses) == 4 and all(np.isfinite(losses))
-    moved = max(float((p.detach() - b).abs().max()) for p, b in zip(field.parameters(), before))
-    assert moved > 0
+def test_dataset_without_meta_needs_its_properties(scene, tmp_path: Path):
+    """A published scene has no meta.json: eps/decay/Bayer must come from the config."""
+    from eventrecon import runner
+    from integration import tiny_config
+
+    root, _ = scene
+    (root / "meta.json").unlink()
+    cfg = tiny_config(tmp_path, f"data.root={root}")
+    with pytest.raises(InputError, match=r"meta\.json: tonemap_eps, decay, bayer: expected .*"
+                                         r"data=real"):
+        runner.run(cfg, tmp_path / "run")
+    cfg = tiny_config(tmp_path, f"data.root={root}", "data.tonemap_eps=0.05",
+                      "data.decay=1.0", "data.bayer=false")
+    props = runner.scene_properties(cfg, read_dataset(root))
+    assert (props.tonemap_eps, props.decay, props.bayer, props.segments) == (0.05, 1.0, False,
+                                                                            None)
+
+
+@pytest.mark.parametrize("missing", ["events", "rgb"])
+def test_training_split_without_events_or_frames_is_one_line(scene, tmp_path: Path,
+                                                             missing: str):
+    import shutil
+
+    from eventrecon import runner
+    from integration import tiny_config
+
+    root, _ = scene
+    shutil.rmtree(root / "train" / missing)
+    cfg = tiny_config(tmp_path, "data=real", f"data.root={root}")
+    with pytest.raises(InputError, match=rf"train/{missing}: <folder>: expected .*, got missing"):
+        runner.run(cfg, tmp_path / "run")

@@ -1,7 +1,8 @@
 """Convert recordings of the camera rig into the published dataset layout.
 
 ``python -m eventrecon.convert aedat4 --inputs cam0.aedat4 … cam5.aedat4 --out DIR
-[--start-us S] [--end-us E] [--fps 5] [--background-us B] [--camdict camdict.json]``
+[--start-us S] [--end-us E] [--fps 5] [--background-us B] [--camdict camdict.json]
+[--segments 5] [--sync-tolerance-us 100]``
 
 One AEDAT4 recording per camera (decoded with the ``aedat`` package: events, APS frames,
 triggers). The steps:
@@ -21,10 +22,18 @@ triggers). The steps:
    PNGs, greyscale (Bayer raw) frames as single-channel PNGs.
 5. **Background.** Per camera the APS frame nearest ``--background-us`` (the empty
    scene), stored as ``background/<view>.png``.
+6. **Triggers.** Every camera's trigger stream inside the cut goes to ``meta.json``
+   (``triggers[<view>] = {t, t_us, source}``, ``t`` normalised like the events). The
+   external triggers (sources 1–5: signal and generator edges and pulses) are one
+   physical pulse seen by every camera, so they also check the synchronisation: if all
+   cameras recorded the same number of them, the k-th one must carry the same timestamp
+   everywhere (within ``--sync-tolerance-us``, 100 µs by default), else one line names
+   the first camera and trigger that disagree.
 
 Views are named ``00, 01, …`` in ``--inputs`` order; ``meta.json`` records the source
-files, the span, the chosen frame timestamps and the real-data defaults
-(``tonemap_eps`` 3e-2, ``decay`` 0.93). Cameras come from ``--camdict`` (copied after
+files, the span, the chosen frame timestamps, the triggers and the real-data defaults
+(``tonemap_eps`` 3e-2, ``threshold`` 0.5, ``decay`` 0.93, Bayer, ``--segments`` equal
+overlapping segments, 5 by default). Cameras come from ``--camdict`` (copied after
 validation); the output is written to a temporary folder and renamed (atomic).
 """
 
@@ -47,9 +56,10 @@ import numpy as np
 from eventrecon import TIME_SPAN
 from eventrecon.errors import InputError
 from eventrecon.render.cameras import load_camdict
+from eventrecon.segments import make_segments
 
-__all__ = ["Recording", "decode_aedat4", "read_frames", "shared_span", "nearest_frames",
-           "convert_aedat4", "main"]
+__all__ = ["Recording", "decode_aedat4", "read_frames", "shared_span", "check_trigger_sync",
+           "nearest_frames", "convert_aedat4", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -183,6 +193,37 @@ def shared_span(recordings: Sequence[Recording]) -> tuple[int, int]:
     return s0, s1
 
 
+#: Trigger sources that are external pulses (DV ``TriggerType`` 1–5): the same physical
+#: event on every synchronised camera.
+EXTERNAL_TRIGGERS: frozenset[int] = frozenset({1, 2, 3, 4, 5})
+
+
+def check_trigger_sync(recordings: Sequence[Recording], tolerance_us: int = 100) -> int | None:
+    """Compare the external triggers of synchronised cameras; return the largest spread.
+
+    Returns ``None`` when the check does not apply (a camera has no external trigger, or
+    the cameras recorded different numbers of them — e.g. one started later).
+
+    Raises:
+        InputError: the k-th external trigger differs by more than ``tolerance_us``
+            between the first camera and another one (the clocks are not synchronised).
+    """
+    ext = [r.triggers["t"][np.isin(r.triggers["source"], list(EXTERNAL_TRIGGERS))]
+           .astype(np.int64) for r in recordings]
+    if not ext or any(e.size == 0 for e in ext) or len({e.size for e in ext}) != 1:
+        return None
+    spread = [np.abs(e - ext[0]) for e in ext]
+    worst = max(int(d.max()) for d in spread)
+    if worst > tolerance_us:
+        cam = next(i for i, d in enumerate(spread) if int(d.max()) == worst)
+        k = int(np.argmax(spread[cam]))
+        raise InputError(recordings[cam].path, "triggers",
+                         f"external trigger {k} at the time of {recordings[0].path.name}'s "
+                         f"(±{tolerance_us} µs: synchronised clocks)",
+                         f"{int(ext[cam][k])} vs {int(ext[0][k])} µs")
+    return worst
+
+
 def nearest_frames(frame_t: np.ndarray, targets_us: np.ndarray) -> np.ndarray:
     """``[T]`` index of the frame whose timestamp is nearest each target (ties: earlier).
 
@@ -204,7 +245,8 @@ def _time_name(t: float) -> str:
 def convert_aedat4(inputs: Sequence[str | Path], out: str | Path, start_us: int = 0,
                    end_us: int | None = None, fps: float = 5.0,
                    background_us: int | None = None, camdict: str | Path | None = None,
-                   split: str = "train", bayer: bool = True, overwrite: bool = False) -> Path:
+                   split: str = "train", bayer: bool = True, overwrite: bool = False,
+                   segments: int = 5, sync_tolerance_us: int = 100) -> Path:
     """Convert one AEDAT4 recording per camera into ``out/<split>/`` (module docstring).
 
     Args:
@@ -218,6 +260,8 @@ def convert_aedat4(inputs: Sequence[str | Path], out: str | Path, start_us: int 
         split: split folder name.
         bayer: whether the event pixels are colour (Bayer) pixels (DAVIS 346C).
         overwrite: replace an existing ``out``.
+        segments: number of equal overlapping training segments recorded in ``meta.json``.
+        sync_tolerance_us: largest allowed disagreement of external triggers.
 
     Returns:
         The scene folder.
@@ -232,6 +276,9 @@ def convert_aedat4(inputs: Sequence[str | Path], out: str | Path, start_us: int 
                          sorted(sizes))
     (w, h), = sizes
     s0, s1 = shared_span(recs)
+    spread = check_trigger_sync(recs, sync_tolerance_us)
+    if spread is not None:
+        log.info("external triggers agree across the cameras within %d µs", spread)
     start = s0 + int(start_us)
     end = s1 if end_us is None else s0 + int(end_us)
     if not s0 <= start < end <= s1:
@@ -254,8 +301,11 @@ def convert_aedat4(inputs: Sequence[str | Path], out: str | Path, start_us: int 
         cut = _Cut(start, end, s0, targets, None if background_us is None else s0 + background_us)
         _write(recs, tmp / split, cut)
         meta = {"source": [str(Path(p)) for p in inputs], "start_us": start, "end_us": end,
-                "duration_s": (end - start) / 1e6, "fps": fps, "tonemap_eps": 3e-2,
-                "decay": 0.93, "bayer": bayer, "background_us": cut.background}
+                "duration_s": (end - start) / 1e6, "fps": fps, "rgb_fps": fps,
+                "tonemap_eps": 3e-2, "threshold": 0.5, "decay": 0.93, "bayer": bayer,
+                "segments": [[sg.start, sg.end] for sg in make_segments(segments)],
+                "background_us": cut.background,
+                "triggers": {f"{v:02d}": _triggers_in(r, start, end) for v, r in enumerate(recs)}}
         meta.update(cut.log)
         if cams_json is not None:
             (tmp / split / "camdict.json").write_text(cams_json)
@@ -267,6 +317,15 @@ def convert_aedat4(inputs: Sequence[str | Path], out: str | Path, start_us: int 
         shutil.rmtree(out)
     os.replace(tmp, out)
     return out
+
+
+def _triggers_in(rec: Recording, start: int, end: int) -> dict[str, list]:
+    """The recording's triggers with ``start ≤ t ≤ end``: µs, normalised time, source."""
+    trig = rec.triggers[(rec.triggers["t"] >= start) & (rec.triggers["t"] <= end)]
+    t_us = trig["t"].astype(np.int64)
+    return {"t_us": t_us.tolist(),
+            "t": ((t_us - start).astype(np.float64) * TIME_SPAN / (end - start)).tolist(),
+            "source": trig["source"].astype(int).tolist()}
 
 
 @dataclass
@@ -333,12 +392,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     a.add_argument("--no-bayer", dest="bayer", action="store_false",
                    help="event pixels are monochrome (not a DAVIS 346C)")
     a.add_argument("--overwrite", action="store_true")
+    a.add_argument("--segments", type=int, default=5,
+                   help="equal overlapping training segments written to meta.json")
+    a.add_argument("--sync-tolerance-us", type=int, default=100,
+                   help="largest disagreement of the cameras' external triggers")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
         out = convert_aedat4(args.inputs, args.out, args.start_us, args.end_us, args.fps,
                              args.background_us, args.camdict, args.split, args.bayer,
-                             args.overwrite)
+                             args.overwrite, args.segments, args.sync_tolerance_us)
     except InputError as e:
         sys.stderr.write(f"error: {e}\n")
         return 2

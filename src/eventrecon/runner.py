@@ -39,7 +39,7 @@ from eventrecon.render.volume import Renderer
 from eventrecon.segments import resolve_segments
 
 __all__ = ["run", "load_dataset", "segment_steps", "scene_properties", "build_field", "build_renderer",
-           "build_module", "loss_config", "event_decay", "select_views", "select_fps",
+           "build_module", "loss_config", "event_decay", "check_training_split", "select_views", "select_fps",
            "train_segment", "load_segment", "evaluate_run", "run_info", "planned_run_info",
            "check_checkpoint"]
 
@@ -66,6 +66,22 @@ def scene_properties(cfg: DictConfig, ds: Dataset) -> SceneProperties:
     """ε, θ, decay, Bayer, duration, segments and cylinder of the run's data
     (``data.*`` over ``meta.json``; see :mod:`eventrecon.data.properties`)."""
     return resolve_properties(cfg.data, ds.meta, ds.root)
+
+
+def check_training_split(split: SplitData) -> None:
+    """The training split has what the method needs: events and at least one RGB frame.
+
+    Both folders are optional for the reader (a validation split has no events), so the
+    requirement is checked here, before anything is trained, as one line naming the folder.
+    """
+    if split.events is None:
+        raise InputError(Path(split.root) / "events", "<folder>",
+                         "one events/<view>.npz per training view (the method learns from "
+                         "events)", "missing")
+    if len(split.frame_times) == 0:
+        raise InputError(Path(split.root) / "rgb", "<folder>",
+                         "at least one rgb/<frame>/<view>.png (L_acc and L_rgb need a "
+                         "reference frame)", "missing")
 
 
 def select_views(split: SplitData, n: int | None) -> SplitData:
@@ -433,6 +449,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
     if "train" not in ds.splits:
         raise InputError(ds.root, "train/", "a training split")
     props = scene_properties(cfg, ds)
+    check_training_split(ds.splits["train"])
     train = select_views(ds.splits["train"], cfg.data.views)
     train = select_fps(train, cfg.data.fps, props.duration_s)
     heldout = ds.splits.get("validation")

@@ -12,7 +12,6 @@ The dataset lands in ``<data_dir>/<scene name>-<config hash>/`` (see
 from __future__ import annotations
 
 import logging
-import shutil
 import sys
 from pathlib import Path
 
@@ -20,7 +19,7 @@ import hydra
 from omegaconf import DictConfig
 
 from eventrecon.errors import InputError
-from eventrecon.sim.pipeline import dataset_path, ensure_dataset
+from eventrecon.sim.pipeline import ensure_dataset
 
 log = logging.getLogger("eventrecon.simulate")
 
@@ -32,11 +31,9 @@ def _config_dir() -> str:
 
 
 def run(cfg: DictConfig) -> Path:
-    """Simulate ``cfg.scene`` under ``cfg.data_dir`` (re-simulate with ``cfg.force``)."""
-    target = dataset_path(cfg.scene, cfg.data_dir)
-    if cfg.get("force", False) and target.exists():
-        shutil.rmtree(target)
-    path = ensure_dataset(cfg.scene, cfg.data_dir)
+    """Simulate ``cfg.scene`` under ``cfg.data_dir`` (re-simulate with ``cfg.force``; the
+    existing dataset is replaced only once the new one is complete)."""
+    path = ensure_dataset(cfg.scene, cfg.data_dir, force=bool(cfg.get("force", False)))
     log.info("dataset: %s", path)
     return path
 

@@ -28,20 +28,19 @@ from PIL import Image, UnidentifiedImageError
 from eventrecon import TIME_SPAN
 from eventrecon.data.types import EventStream
 from eventrecon.errors import InputError
+from eventrecon.render.cameras import RIGID_TOL, check_intrinsics, check_rigid
 
 __all__ = [
     "read_matrix_txt",
     "read_intrinsics",
     "read_pose",
     "check_rigid",
+    "RIGID_TOL",
     "read_events_npz",
     "validate_events",
     "read_png",
     "read_json",
 ]
-
-#: Tolerance of the rigidity check: ``max |RᵀR − I| ≤ tol`` and ``|det R − 1| ≤ tol``.
-RIGID_TOL: float = 1e-3
 
 _NPZ_ERRORS = (zipfile.BadZipFile, zlib.error, OSError, EOFError, ValueError, KeyError)
 
@@ -77,32 +76,8 @@ def read_intrinsics(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if m.shape[0] == 5:
         row = m[4]
         dist[: min(5, row.size)] = row[:5]
-    if not (np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-6) and abs(K[1, 0]) < 1e-9
-            and K[0, 0] > 0 and K[1, 1] > 0):
-        raise InputError(path, "K", "[[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0",
-                         np.array2string(K, precision=3).replace("\n", ""))
+    check_intrinsics(K, path, "K")
     return K, dist
-
-
-def check_rigid(m: np.ndarray, where: Path | str, field: str = "pose",
-                tol: float = RIGID_TOL) -> None:
-    """Raise ``non-rigid pose`` unless ``m [4, 4]`` is a rotation + translation.
-
-    Checks ``max |RᵀR − I| ≤ tol``, ``|det R − 1| ≤ tol`` and the last row
-    ``(0, 0, 0, 1)`` (to ``tol``).
-    """
-    if m.shape != (4, 4):
-        raise InputError(where, field, "a 4×4 matrix", "×".join(map(str, m.shape)))
-    R = m[:3, :3]
-    ortho = float(np.abs(R.T @ R - np.eye(3)).max())
-    det = float(np.linalg.det(R))
-    bottom = float(np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max())
-    if ortho > tol or abs(det - 1.0) > tol or bottom > tol:
-        raise InputError(where, field,
-                         f"a rigid transform (R orthonormal, det R = +1, "
-                         f"last row 0 0 0 1, within {tol:g})",
-                         f"a non-rigid pose: max|RᵀR−I| = {ortho:.3g}, det R = {det:.4g}, "
-                         f"last row {m[3].tolist()}")
 
 
 def read_pose(path: Path, tol: float = RIGID_TOL) -> np.ndarray:

@@ -41,7 +41,6 @@ import numpy as np
 
 from eventrecon.data.files import (
     RIGID_TOL,
-    check_rigid,
     read_events_npz,
     read_intrinsics,
     read_json,
@@ -102,15 +101,13 @@ def _read_cameras(split: Path, rigid_tol: float) -> tuple[Cameras, list[str], Pa
     from_camdict = None
     if camdict_path.is_file():
         try:
-            from_camdict = cameras_from_camdict(read_json(camdict_path), camdict_path)
+            from_camdict = cameras_from_camdict(read_json(camdict_path), camdict_path, rigid_tol)
         except InputError:
             raise
         except (TypeError, ValueError, RuntimeError, AttributeError) as e:
             raise InputError(camdict_path, "<entries>", "per-image objects with numeric K, "
                              "W2C (16 numbers), dist and img_size [W, H]",
                              f"{type(e).__name__}: {str(e)[:60]}") from None
-        for i, name in enumerate(from_camdict.names):
-            check_rigid(from_camdict.c2w[i].numpy(), camdict_path, f"{name}.W2C", rigid_tol)
     if not intr.is_dir() and not pose.is_dir():
         if from_camdict is None:
             raise InputError(split, "intrinsics/", "intrinsics/ and pose/ folders or a "

@@ -29,6 +29,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -41,6 +42,9 @@ __all__ = [
     "look_at",
     "ring_rig",
     "cameras_from_camdict",
+    "check_intrinsics",
+    "check_rigid",
+    "RIGID_TOL",
     "cameras_to_camdict",
 ]
 
@@ -314,11 +318,54 @@ def ring_rig(
                    list(names) if names is not None else [])
 
 
-def cameras_from_camdict(camdict: dict, source: str | Path = "camdict.json") -> Cameras:
+#: Tolerance of the rigidity check: ``max |RᵀR − I| ≤ tol`` and ``|det R − 1| ≤ tol``.
+RIGID_TOL: float = 1e-3
+
+
+def check_intrinsics(K: np.ndarray, where: str | Path, field: str = "K") -> None:
+    """Raise unless ``K [3, 3]`` is ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``, finite,
+    with ``fx, fy > 0``."""
+    K = np.asarray(K, dtype=np.float64)
+    ok = (K.shape == (3, 3) and bool(np.isfinite(K).all())
+          and np.allclose(K[2], [0.0, 0.0, 1.0], atol=1e-6) and abs(K[1, 0]) < 1e-9
+          and K[0, 0] > 0 and K[1, 1] > 0)
+    if not ok:
+        raise InputError(where, field, "[[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0",
+                         np.array2string(K, precision=3).replace("\n", ""))
+
+
+def check_rigid(m: np.ndarray, where: Path | str, field: str = "pose",
+                tol: float = RIGID_TOL) -> None:
+    """Raise ``non-rigid pose`` unless ``m [4, 4]`` is a rotation + translation.
+
+    Checks ``max |RᵀR − I| ≤ tol``, ``|det R − 1| ≤ tol`` and the last row
+    ``(0, 0, 0, 1)`` (to ``tol``).
+    """
+    m = np.asarray(m, dtype=np.float64)
+    if m.shape != (4, 4):
+        raise InputError(where, field, "a 4×4 matrix", "×".join(map(str, m.shape)))
+    if not np.isfinite(m).all():
+        raise InputError(where, field, "finite numbers", "NaN or inf")
+    R = m[:3, :3]
+    ortho = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    bottom = float(np.abs(m[3] - [0.0, 0.0, 0.0, 1.0]).max())
+    if ortho > tol or abs(det - 1.0) > tol or bottom > tol:
+        raise InputError(where, field,
+                         f"a rigid transform (R orthonormal, det R = +1, "
+                         f"last row 0 0 0 1, within {tol:g})",
+                         f"a non-rigid pose: max|RᵀR−I| = {ortho:.3g}, det R = {det:.4g}, "
+                         f"last row {m[3].tolist()}")
+
+
+def cameras_from_camdict(camdict: dict, source: str | Path = "camdict.json",
+                         rigid_tol: float = RIGID_TOL) -> Cameras:
     """Cameras from a ``camdict.json`` mapping (sorted by image name).
 
-    Each entry: ``K`` (4×4 flattened), ``W2C`` (4×4 flattened), optional ``dist``
-    ``[k1, k2, p1, p2, k3]`` and ``img_size [W, H]`` (equal for all entries).
+    Each entry: ``K`` (4×4 flattened; its 3×3 block a proper intrinsic matrix), ``W2C``
+    (4×4 flattened, rigid within ``rigid_tol``), optional ``dist`` ``[k1, k2, p1, p2(, k3)]``
+    and ``img_size [W, H]`` (equal for all entries). Violations raise
+    :class:`~eventrecon.errors.InputError` naming ``source`` and ``<image>.<key>``.
     """
     if not isinstance(camdict, dict) or not camdict:
         raise InputError(source, "<root>", "a non-empty JSON object of per-image entries")
@@ -328,16 +375,25 @@ def cameras_from_camdict(camdict: dict, source: str | Path = "camdict.json") -> 
         for key in ("K", "W2C", "img_size"):
             if key not in entry:
                 raise InputError(source, f"{name}.{key}", "a value", "missing")
-        K = torch.tensor(entry["K"], dtype=torch.float64)
-        W2C = torch.tensor(entry["W2C"], dtype=torch.float64)
+        try:
+            K = torch.tensor(entry["K"], dtype=torch.float64)
+            W2C = torch.tensor(entry["W2C"], dtype=torch.float64)
+            dist = torch.tensor(entry.get("dist", [0.0] * 5), dtype=torch.float64).reshape(-1)
+        except (TypeError, ValueError, RuntimeError):
+            raise InputError(source, f"{name}.K/W2C/dist", "lists of numbers",
+                             "something else") from None
         if K.numel() != 16 or W2C.numel() != 16:
             raise InputError(source, f"{name}.K/W2C", "16 numbers (4×4 flattened)",
                              f"{K.numel()} and {W2C.numel()}")
-        dist = torch.tensor(entry.get("dist", [0.0] * 5), dtype=torch.float64).reshape(-1)
-        if dist.numel() < 5:
-            dist = torch.cat([dist, dist.new_zeros(5 - dist.numel())])
+        if dist.numel() not in (4, 5) or not bool(torch.isfinite(dist).all()):
+            raise InputError(source, f"{name}.dist", "4 or 5 finite numbers [k1 k2 p1 p2 (k3)]",
+                             entry.get("dist"))
+        if dist.numel() == 4:
+            dist = torch.cat([dist, dist.new_zeros(1)])
+        check_intrinsics(K.reshape(4, 4)[:3, :3].numpy(), source, f"{name}.K")
+        check_rigid(W2C.reshape(4, 4).numpy(), source, f"{name}.W2C", rigid_tol)
         Ks.append(K.reshape(4, 4)[:3, :3])
-        dists.append(dist[:5])
+        dists.append(dist)
         c2ws.append(torch.linalg.inv(W2C.reshape(4, 4)))
         names.append(Path(name).stem)
         sizes.add(tuple(int(s) for s in entry["img_size"]))

@@ -13,6 +13,7 @@ simulator version) and writes it atomically, only when missing.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import time
 from collections.abc import Iterator
@@ -106,27 +107,36 @@ def _simulate(spec: SceneSpec, root: str | Path) -> Dataset:
 
 
 def dataset_path(scene_cfg: object, data_dir: str | Path = "data") -> Path:
-    """``data_dir/<name>-<hash>``: where :func:`ensure_dataset` keeps this config."""
+    """``data_dir/<name>-<hash>``: where :func:`ensure_dataset` keeps this config.
+
+    The hash covers the scene config and, for ``rig.camdict``, the camdict file's bytes
+    (an edited calibration is a new dataset, not the cached one).
+    """
     raw = to_plain(scene_cfg)
     name = str(raw.get("name", "scene")) if isinstance(raw, dict) else "scene"
+    rig = raw.get("rig") if isinstance(raw, dict) else None
+    if isinstance(rig, dict) and rig.get("camdict") and Path(rig["camdict"]).is_file():
+        digest = hashlib.sha256(Path(rig["camdict"]).read_bytes()).hexdigest()
+        raw = {**raw, "rig": {**rig, "camdict_sha256": digest}}
     return Path(data_dir) / f"{name}-{config_hash(raw, SIM_VERSION)}"
 
 
 def ensure_dataset(scene_cfg: object, data_dir: str | Path = "data",
-                   threads: int | None = 1) -> Path:
+                   threads: int | None = 1, force: bool = False) -> Path:
     """Path of the simulated dataset of ``scene_cfg``; simulate and write it if missing.
 
     The folder appears atomically (temporary folder + rename), so a crash or Ctrl-C
     leaves no partial dataset behind and the next call simply simulates again. Parallel
     callers (a joblib sweep) serialise on an exclusive lock file beside the folder: the
-    first simulates, the others wait and then find it.
+    first simulates, the others wait and then find it. ``force`` simulates again and
+    swaps the new folder in atomically (the old one stays intact until then).
     """
     path = dataset_path(scene_cfg, data_dir)
-    if (path / "meta.json").is_file():
+    if (path / "meta.json").is_file() and not force:
         log.info("dataset %s exists; not simulating again", path)
         return path
     with _exclusive(path.parent / LOCKS / f"{path.name}.lock"):
-        if (path / "meta.json").is_file():  # another process wrote it while we waited
+        if (path / "meta.json").is_file() and not force:  # written while we waited
             return path
         ds = simulate_dataset(scene_cfg, path, threads=threads)
         write_dataset(ds, path, overwrite=path.exists())

@@ -154,6 +154,11 @@ def build_cameras(spec: SceneSpec) -> tuple[Cameras, Cameras]:
     n_held = get(r, "n_heldout", int, w, "rig.", 1, lambda v: v >= 0)
     if r.get("camdict"):
         cams = load_camdict(r["camdict"])
+        if (cams.width, cams.height) != (spec.width, spec.height):
+            raise InputError(w, "width/height",
+                             f"the image size of rig.camdict {r['camdict']} "
+                             f"({cams.width}×{cams.height}: set width={cams.width} "
+                             f"height={cams.height})", f"{spec.width}×{spec.height}")
         if n_held >= len(cams):
             raise InputError(w, "rig.n_heldout", f"< the {len(cams)} views of the camdict", n_held)
         n_tr = len(cams) - n_held
