@@ -73,6 +73,8 @@ def main(cfg: DictConfig) -> float | None:
             log.exception("job failed")
             return _record_failure(cfg, out_dir, e)
         raise
+    if metrics.get("rank"):  # a DDP worker: rank 0 evaluates and reports
+        return None
     if metrics["status"] == "partial":
         log.info("segment %s trained; the run is evaluated once segments %s are trained too",
                  cfg.data.segment, metrics["missing_segments"])

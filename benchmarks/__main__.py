@@ -1,23 +1,49 @@
-"""Run every ``benchmarks/bench_*.py`` module's ``main()`` (``python -m benchmarks``)."""
+"""``python -m benchmarks [NAME [ARGS...]]``: run one benchmark (or all) with its own arguments.
+
+    python -m benchmarks                      # every benchmark with its defaults
+    python -m benchmarks step --only ngp      # the project's training step, one backbone
+    python -m benchmarks sim --quick          # simulator, default size only
+    python -m benchmarks fields --help        # a benchmark's own options
+
+``make bench ARGS="step --profile"`` passes ARGS here. NAME is the part after ``bench_``
+of a module in this folder.
+"""
 
 from __future__ import annotations
 
 import importlib
 import logging
 import pkgutil
+import sys
 from pathlib import Path
 
 log = logging.getLogger("benchmarks")
 
 
-def main() -> None:
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
+def available() -> list[str]:
+    """Names of the benchmarks (``bench_<name>.py`` beside this file)."""
     here = Path(__file__).resolve().parent
-    for mod in sorted(m.name for m in pkgutil.iter_modules([str(here)])
-                      if m.name.startswith("bench_")):
-        log.info("== %s ==", mod)
-        importlib.import_module(f"benchmarks.{mod}").main()
+    return sorted(m.name[len("bench_"):] for m in pkgutil.iter_modules([str(here)])
+                  if m.name.startswith("bench_"))
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    logging.getLogger("eventrecon").setLevel(logging.WARNING)
+    names = available()
+    if argv and argv[0] in ("-h", "--help"):
+        log.info("%s\nbenchmarks: %s", __doc__, ", ".join(names))
+        return 0
+    if argv and argv[0] not in names:
+        log.error("unknown benchmark %r: expected one of %s", argv[0], ", ".join(names))
+        return 2
+    todo = [(argv[0], argv[1:])] if argv else [(n, []) for n in names]
+    for name, args in todo:
+        log.info("== %s ==", name)
+        importlib.import_module(f"benchmarks.bench_{name}").main(args)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -19,6 +19,7 @@ the two implementations alternating step by step) and the ratio of the best.
 from __future__ import annotations
 
 import argparse
+import logging
 import time
 
 import torch
@@ -28,6 +29,7 @@ from torch import Tensor, nn
 from eventrecon.fields.nerf import NeRFField
 from eventrecon.render.volume import Renderer
 
+log = logging.getLogger("benchmarks.nerf")
 
 class NaiveNeRF(nn.Module):
     """The same network written the straightforward way (reference for the ratio)."""
@@ -127,7 +129,7 @@ def time_renderer(field: nn.Module, rays: int, n_coarse: int, n_fine: int, steps
     return sorted(times)[len(times) // 2]
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--depth", type=int, default=8)
     p.add_argument("--width", type=int, default=256)
@@ -139,7 +141,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--renderer", action="store_true",
                    help="also time Renderer(32, 32) + field on 256 rays x 3 times")
-    args = p.parse_args()
+    args = p.parse_args(argv if argv is not None else [])
     torch.set_num_threads(args.threads)
     arch = dict(depth=args.depth, width=args.width, skip=args.skip, pos_bands=14,
                 time_bands=7, colour_width=128)
@@ -154,16 +156,19 @@ def main() -> None:
     for name, ts in times.items():
         best[name] = args.batch / min(ts)
         median = sorted(ts)[len(ts) // 2]
-        print(f"{name:>10}: best {best[name] / 1e3:7.1f} k samples/s, median "
+        log.info(f"{name:>10}: best {best[name] / 1e3:7.1f} k samples/s, median "
               f"{args.batch / median / 1e3:7.1f} k samples/s ({median * 1e3:7.1f} ms/step; "
               f"{args.depth}x{args.width}, batch {args.batch}, {args.threads} threads)")
-    print(f"     ratio (best): {best['eventrecon'] / best['naive']:.2f}x")
+    log.info(f"     ratio (best): {best['eventrecon'] / best['naive']:.2f}x")
     if args.renderer:
         rays = 3 * 256
         sec = time_renderer(ours, rays, 32, 32, args.steps, args.seed)
-        print(f"  renderer: {rays / sec:8.0f} rays/s  ({sec * 1e3:7.1f} ms/step, 768 rays, "
+        log.info(f"  renderer: {rays / sec:8.0f} rays/s  ({sec * 1e3:7.1f} ms/step, 768 rays, "
               f"32 + 32 samples, both levels)")
 
 
 if __name__ == "__main__":
-    main()
+    import sys
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    main(sys.argv[1:])

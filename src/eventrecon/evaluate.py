@@ -55,7 +55,7 @@ def render_heldout(models: Sequence[tuple[Field, Renderer]], segments: Sequence[
                 field, renderer = models[seg_i]
                 res = renderer.render_image(field, split.cameras, v, t_norm,
                                             bg[v].to(device), chunk=chunk)
-                img += w * res["rgb"]
+                img += w * res["rgb"].to(device)  # segments may live on different devices
             out[a, b] = img.clamp(0, 1).cpu().numpy()
     return out
 

@@ -399,6 +399,13 @@ def check_checkpoint(path: str | Path, field: Field) -> None:
                          f"a checkpoint of {mine} (this run's model)", theirs)
 
 
+def _global_rank() -> int:
+    """This process's rank in a multi-GPU (DDP) run; 0 otherwise."""
+    from lightning.pytorch.utilities.rank_zero import rank_zero_only
+
+    return int(getattr(rank_zero_only, "rank", 0) or 0)
+
+
 def _done(seg_dir: Path, max_steps: int) -> dict | None:
     """The ``done.json`` of a segment trained to at least ``max_steps``, else ``None``."""
     path = seg_dir / "done.json"
@@ -473,9 +480,13 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
         modules[k], w = train_segment(cfg, props, train, heldout, k, segments[k], out_dir, wall,
                                       max_steps)
         wall += w
+        if _global_rank() != 0:
+            continue  # DDP: rank 0 records and evaluates
         atomic_write_json(seg_dir / "done.json", {
             "max_steps": max_steps, "steps": int(modules[k].global_step), "wall_s": w,
             "nonfinite_steps": modules[k].nonfinite_total})
+    if _global_rank() != 0:
+        return {**info, "status": "ok", "error": None, "rank": _global_rank()}
     dones = [_done(out_dir / f"seg{k}", max_steps) for k in range(len(segments))]
     metrics: dict[str, Any] = {**info, "status": "ok", "error": None,
                                "max_steps": int(cfg.trainer.max_steps),

@@ -1,0 +1,140 @@
+"""The project's real training step per backbone, against the bare field step.
+
+    python -m benchmarks step                      # every backbone, trainer=cpu, 2 threads
+    python -m benchmarks step --only ngp --profile # where the time of one step goes
+
+A *real* step is what :class:`eventrecon.module.EventNeRFModule` does each iteration:
+draw the batch (window, balanced rays, event lookups, reference frame), render every
+ray at ``t0, t1, t_ref`` with the coarse and fine passes, the four losses, backward and
+the optimiser step. Its throughput is counted in field samples
+(``3 · n_rays · (n_coarse + n_fine)`` queries per step). The *bare* step is the field
+alone on as many random samples (forward, a trivial loss, backward, optimiser step), as
+``bench_fields`` measures it; ``real/bare`` says how much of the step the rest costs.
+Scene: the default ``spheres`` at the ``trainer=cpu`` preset (simulated into ``data/`` if
+missing). Medians over ``--reps`` steps after ``--warmup``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import statistics
+import time
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+
+from eventrecon import runner
+from eventrecon.data.batcher import Segment
+from eventrecon.losses import total_loss
+from eventrecon.module import step_generator
+
+log = logging.getLogger("benchmarks.step")
+CONF = str(Path(__file__).resolve().parents[1] / "conf")
+
+#: name -> config overrides (the CPU presets; ``nerf_paper`` is the paper's 8×256 MLP).
+BACKBONES: dict[str, list[str]] = {
+    "nerf": ["model=nerf"],
+    "nerf_paper": ["model=nerf", "model.depth=8", "model.width=256", "model.skip=4"],
+    "ngp": ["model=ngp"],
+    "ngp_compiled": ["model=ngp", "model.compile=true"],
+    "tensorf_cp": ["model=tensorf_cp"],
+    "hexplane": ["model=hexplane"],
+}
+
+
+def _median_time(fn, reps: int, warmup: int) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def measure(overrides: list[str], reps: int, warmup: int, data_dir: str,
+            profile: bool = False) -> dict:
+    """Median seconds of the real and the bare step of one backbone configuration."""
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[*overrides, f"data_dir={data_dir}"])
+    ds = runner.load_dataset(cfg)
+    props = runner.scene_properties(cfg, ds)
+    module = runner.build_module(cfg, props, ds.splits["train"], Segment(0.0, 1000.0))
+    opt = module.configure_optimizers()
+    n_rays = int(cfg.trainer.n_rays)
+    samples = 3 * n_rays * (int(cfg.trainer.n_coarse) + int(cfg.trainer.n_fine))
+    state = {"step": 0}
+
+    def real() -> None:
+        s = state["step"] = state["step"] + 1
+        gen = step_generator(0, s)
+        batch = module.batcher.sample(n_rays, gen)
+        loss = total_loss(module.render_three(batch, gen), batch, module.loss_cfg, s)["loss"]
+        reg = module.field.regularization()
+        if reg is not None:
+            loss = loss + reg
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+
+    g = torch.Generator().manual_seed(0)
+    xyz, t = torch.rand(samples, 3, generator=g) - 0.5, torch.rand(samples, 1, generator=g)
+
+    def bare() -> None:
+        sigma, rgb = module.field(xyz, t)
+        loss = sigma.mean() + rgb.mean()
+        reg = module.field.regularization()
+        if reg is not None:
+            loss = loss + reg
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+
+    real_s = _median_time(real, reps, warmup)
+    bare_s = _median_time(bare, reps, warmup)
+    row = {"samples": samples, "real_s": real_s, "bare_s": bare_s,
+           "real_samples_per_s": samples / real_s, "bare_samples_per_s": samples / bare_s}
+    if profile:
+        from torch.profiler import ProfilerActivity
+        from torch.profiler import profile as torch_profile
+
+        with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
+            for _ in range(3):
+                real()
+        row["profile"] = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=12)
+    return row
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks step",
+                                 description=__doc__.splitlines()[0])
+    ap.add_argument("--only", nargs="*", choices=list(BACKBONES), help="subset of backbones")
+    ap.add_argument("--reps", type=int, default=7)
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--data-dir", default="data")
+    ap.add_argument("--profile", action="store_true", help="print the top operators of 3 steps")
+    args = ap.parse_args(argv if argv is not None else [])
+    torch.set_num_threads(args.threads)
+    for name, over in BACKBONES.items():
+        if args.only and name not in args.only:
+            continue
+        r = measure(over, args.reps, args.warmup, args.data_dir, args.profile)
+        log.info("%-13s real %8.1f k samples/s (%6.1f ms/step)  bare %8.1f k samples/s "
+                 "(%6.1f ms)  real/bare %.2f  [%d samples/step, %d threads]", name,
+                 r["real_samples_per_s"] / 1e3, r["real_s"] * 1e3,
+                 r["bare_samples_per_s"] / 1e3, r["bare_s"] * 1e3,
+                 r["real_samples_per_s"] / r["bare_samples_per_s"], r["samples"], args.threads)
+        if "profile" in r:
+            log.info("%s", r["profile"])
+
+
+if __name__ == "__main__":
+    import sys
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    logging.getLogger("eventrecon").setLevel(logging.WARNING)
+    main(sys.argv[1:])
