@@ -195,7 +195,8 @@ class FactorGrids(nn.Module):
         for j, ax in enumerate(self.axes):
             saved = state_dict.get(f"{prefix}factors.{j}")
             if saved is not None and tuple(saved.shape) != tuple(self.factors[j].shape):
-                self.factors[j] = nn.Parameter(torch.empty_like(saved, device=self.factors[j].device))
+                device = self.factors[j].device
+                self.factors[j] = nn.Parameter(torch.empty_like(saved, device=device))
                 for a, r in zip(ax, saved.shape[1:]):
                     res[a] = int(r)
         self.resolution = tuple(res)

@@ -37,10 +37,12 @@ def _compose(*overrides: str):
 def test_defaults():
     cfg = _compose()
     assert cfg.loss.name == "full"
-    assert (cfg.loss.w_event, cfg.loss.w_acc, cfg.loss.w_rgb, cfg.loss.lam_sparsity) == (1.0, 1.0, 0.01, 0.01)
+    loss = cfg.loss
+    assert (loss.w_event, loss.w_acc, loss.w_rgb, loss.lam_sparsity) == (1.0, 1.0, 0.01, 0.01)
     assert cfg.data.neg_ratio == 0.9
     # schedules are fractions of the run: 2500 CPU steps -> 67 annealing, 500 ramp steps
-    assert (cfg.trainer.max_steps, cfg.model.anneal_steps, cfg.loss.sparsity_ramp) == (2500, 67, 500)
+    schedule = (cfg.trainer.max_steps, cfg.model.anneal_steps, cfg.loss.sparsity_ramp)
+    assert schedule == (2500, 67, 500)
     # trainer=cpu sizes the NeRF MLP for 2 cores (conf/sizing/cpu_nerf.yaml)
     assert (cfg.model.depth, cfg.model.width, cfg.model.optim.lr) == (4, 128, 1e-3)
 

@@ -54,7 +54,8 @@ def write_camera(path: Path, rng: np.random.Generator, offset_us: int, duration_
         k += 1
     writer.writeEvents(store)
     triggers = dv.TriggerPacket()
-    kinds = (dv.TriggerType.EXTERNAL_SIGNAL_RISING_EDGE, dv.TriggerType.EXTERNAL_SIGNAL_FALLING_EDGE)
+    kinds = (dv.TriggerType.EXTERNAL_SIGNAL_RISING_EDGE,
+             dv.TriggerType.EXTERNAL_SIGNAL_FALLING_EDGE)
     trig_t = [T0 + p + trigger_skew_us for p in PULSES]
     for k, tt in enumerate(trig_t):
         triggers.elements.append(dv.Trigger(int(tt), kinds[k % 2]))

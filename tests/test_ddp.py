@@ -11,9 +11,9 @@ import sys
 from pathlib import Path
 
 import torch
+from integration import TINY, TINY_NERF
 
 from eventrecon.module import step_generator
-from integration import TINY, TINY_NERF
 
 ROOT = Path(__file__).resolve().parents[1]
 

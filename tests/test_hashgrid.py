@@ -131,7 +131,8 @@ def test_field_at_segment_and_box_edges_is_finite_and_clamped():
     assert torch.isfinite(sigma).all() and torch.isfinite(rgb).all()
     assert (sigma >= 0).all() and ((rgb >= 0) & (rgb <= 1)).all()
     # outside the box the field is the boundary value (coordinates clamped)
-    assert torch.equal(sigma[0], sigma[1]) and torch.equal(sigma[2], f(xyz[3:], torch.ones(1, 1))[0][0])
+    assert torch.equal(sigma[0], sigma[1])
+    assert torch.equal(sigma[2], f(xyz[3:], torch.ones(1, 1))[0][0])
 
 
 @pytest.mark.slow

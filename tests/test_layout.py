@@ -48,13 +48,16 @@ def write_split(split: Path, seed: int = 0, n_events: int = 500, views: int = V,
         name = f"{v:02d}"
         K = np.array([[25.0 + v, 0, 14.5], [0, 26.0 + v, 9.5], [0, 0, 1]])
         dist = DIST * (1 + 0.1 * v) if intr_shape != "4x4" else np.zeros(5)
-        if intr_shape == "5x5":
-            m = np.zeros((5, 5)); m[:3, :3] = K; m[3, 3] = 1; m[4] = dist
-        elif intr_shape == "5x4":
-            m = np.zeros((5, 4)); m[:3, :3] = K; m[3, 3] = 1; m[4] = dist[:4]
+        if intr_shape == "5x5":  # K top-left, last row k1 k2 p1 p2 k3
+            m = np.zeros((5, 5))
+            m[:3, :3], m[3, 3], m[4] = K, 1, dist
+        elif intr_shape == "5x4":  # last row k1 k2 p1 p2
+            m = np.zeros((5, 4))
+            m[:3, :3], m[3, 3], m[4] = K, 1, dist[:4]
             dist = np.r_[dist[:4], 0.0]
         else:
-            m = np.eye(4); m[:3, :3] = K
+            m = np.eye(4)
+            m[:3, :3] = K
         np.savetxt(split / "intrinsics" / f"{name}.txt", m)
         c2w = _c2w(v, views)
         np.savetxt(split / "pose" / f"{name}.txt", c2w, fmt="%.17g")
@@ -65,8 +68,8 @@ def write_split(split: Path, seed: int = 0, n_events: int = 500, views: int = V,
         np.savez(split / "events" / f"{name}.npz", **ev)
         bg = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
         iio.imwrite(split / "background" / f"{name}.png", bg)
-        truth["K"].append(K); truth["dist"].append(dist); truth["c2w"].append(c2w)
-        truth["events"].append(ev); truth["bg"].append(bg)
+        for key, value in (("K", K), ("dist", dist), ("c2w", c2w), ("events", ev), ("bg", bg)):
+            truth[key].append(value)
     for ft in FRAME_TIMES:
         d = split / "rgb" / f"{ft:04d}"
         d.mkdir(parents=True)
@@ -80,7 +83,8 @@ def write_split(split: Path, seed: int = 0, n_events: int = 500, views: int = V,
     if camdict:
         cd = {}
         for v in range(views):
-            K4 = np.eye(4); K4[:3, :3] = truth["K"][v]
+            K4 = np.eye(4)
+            K4[:3, :3] = truth["K"][v]
             cd[f"{v:02d}.png"] = {"K": K4.ravel().tolist(),
                                   "W2C": np.linalg.inv(truth["c2w"][v]).ravel().tolist(),
                                   "dist": list(truth["dist"][v]), "img_size": [W, H]}
@@ -132,7 +136,7 @@ def test_other_intrinsics_shapes(tmp_path, shape):
 
 
 def test_camdict_only_equals_txt_cameras(tmp_path):
-    truth = write_split(tmp_path / "s", camdict=True, n_events=5)
+    write_split(tmp_path / "s", camdict=True, n_events=5)
     a = read_split(tmp_path / "s").cameras
     for sub in ("intrinsics", "pose"):
         for f in (tmp_path / "s" / sub).iterdir():
@@ -254,8 +258,9 @@ def test_large_event_file_loads_fast(tmp_path):
 def test_independent_dataset_trains(scene, tmp_path: Path):
     """The hand-written dataset trains through the user's path (``data.root=``): a few
     steps, finite losses, evaluated on its validation split."""
-    from eventrecon import runner
     from integration import TINY, TINY_NERF, tiny_config
+
+    from eventrecon import runner
 
     root, _ = scene
     cfg = tiny_config(tmp_path / "unused", "data=real", f"data.root={root}",
@@ -274,8 +279,9 @@ def test_independent_dataset_trains(scene, tmp_path: Path):
 
 def test_dataset_without_meta_needs_its_properties(scene, tmp_path: Path):
     """A published scene has no meta.json: eps/decay/Bayer must come from the config."""
-    from eventrecon import runner
     from integration import tiny_config
+
+    from eventrecon import runner
 
     root, _ = scene
     (root / "meta.json").unlink()
@@ -295,8 +301,9 @@ def test_training_split_without_events_or_frames_is_one_line(scene, tmp_path: Pa
                                                              missing: str):
     import shutil
 
-    from eventrecon import runner
     from integration import tiny_config
+
+    from eventrecon import runner
 
     root, _ = scene
     shutil.rmtree(root / "train" / missing)

@@ -34,8 +34,9 @@ def write_legacy(split: Path, t_max: float = 5.0, images: bool = True) -> dict:
     for sub in ("pose", "intrinsics", "events", "rgb"):
         (split / sub).mkdir(parents=True)
     angles = np.linspace(0, math.pi, N_POSES)
-    intr = np.zeros((5, 4)); intr[:3, :3] = [[20, 0, 7.5], [0, 20, 5.5], [0, 0, 1]]
-    intr[3, 3] = 1; intr[4] = [-0.1, 0.01, 0, 0]
+    intr = np.zeros((5, 4))
+    intr[:3, :3] = [[20, 0, 7.5], [0, 20, 5.5], [0, 0, 1]]
+    intr[3, 3], intr[4] = 1, [-0.1, 0.01, 0, 0]
     imgs = rng.integers(0, 256, (N_POSES, H, W, 3), dtype=np.uint8)
     for i, th in enumerate(angles):
         np.savetxt(split / "pose" / f"r_{i:05d}.txt", _orbit(th), fmt="%.17g")
@@ -43,7 +44,8 @@ def write_legacy(split: Path, t_max: float = 5.0, images: bool = True) -> dict:
         if images:
             iio.imwrite(split / "rgb" / f"r_{i:05d}.png", imgs[i])
     n = 3000
-    t = np.sort(rng.uniform(0, t_max, n)); t[-1] = t_max
+    t = np.sort(rng.uniform(0, t_max, n))
+    t[-1] = t_max
     ev = dict(x=rng.integers(0, W, n), y=rng.integers(0, H, n), t=t, p=rng.choice([-1, 1], n))
     np.savez(split / "events" / "test_lin_log.npz", **ev)
     return dict(angles=angles, imgs=imgs, ev=ev, t_max=t_max)
@@ -80,7 +82,8 @@ def test_pose_at_times_interpolates_rotation_exactly(tmp_path):
     got = sp.pose_at(t).numpy()
     for k in range(3):
         np.testing.assert_allclose(got[k, :3, :3], _orbit(th[k])[:3, :3], atol=1e-12)
-        i0 = int(s[k]); w = s[k] - i0
+        i0 = int(s[k])
+        w = s[k] - i0
         ta, tb = (_orbit(truth["angles"][i])[:3, 3] for i in (i0, i0 + 1))
         chord = (1 - w) * ta + w * tb
         np.testing.assert_allclose(got[k, :3, 3], chord, atol=1e-12)

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from integration import tiny_config
 
 from eventrecon import runner
 from eventrecon.callbacks import HeldOutMonitor
 from eventrecon.data.batcher import Segment
 from eventrecon.losses import log_intensity
-from integration import tiny_config
 
 
 @pytest.fixture(scope="module")

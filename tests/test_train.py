@@ -81,10 +81,12 @@ def test_one_parameter_set_for_coarse_and_fine(data_dir: Path, tmp_path: Path):
     for lv in levels:
         field.zero_grad()
         lv["rgb_t1"].sum().backward(retain_graph=True)
-        grads.append([p.grad is not None and bool(p.grad.abs().sum() > 0) for p in field.parameters()])
+        grads.append([p.grad is not None and bool(p.grad.abs().sum() > 0)
+                      for p in field.parameters()])
     assert all(grads[0]) and all(grads[1])  # both levels reach every parameter of ONE field
     opt = m.configure_optimizers()
-    assert {id(p) for g in opt.param_groups for p in g["params"]} == {id(p) for p in field.parameters()}
+    in_optimiser = {id(p) for g in opt.param_groups for p in g["params"]}
+    assert in_optimiser == {id(p) for p in field.parameters()}
 
 
 def test_multisegment_run_trains_each_segment_and_crossfades(data_dir: Path, tmp_path: Path):

@@ -183,7 +183,8 @@ class HeldOutMonitor(L.Callback):
             if new:
                 w.writerow(["wall_s", "step", "psnr", "ssim", "lpips", "kind"])
             w.writerow([f"{self.wall:.3f}", step] +
-                       ["" if row[k] is None else f"{row[k]:.5f}" for k in ("psnr", "ssim", "lpips")]
+                       ["" if row[k] is None else f"{row[k]:.5f}"
+                        for k in ("psnr", "ssim", "lpips")]
                        + [kind])
 
     def _log_images(self, trainer: L.Trainer, pl_module: Any, pred: np.ndarray, gt: np.ndarray,

@@ -38,8 +38,9 @@ from eventrecon.module import EventNeRFModule, StepConfig, field_class_name
 from eventrecon.render.volume import Renderer
 from eventrecon.segments import resolve_segments
 
-__all__ = ["run", "load_dataset", "segment_steps", "scene_properties", "build_field", "build_renderer",
-           "build_module", "loss_config", "event_decay", "check_training_split", "select_views", "select_fps",
+__all__ = ["run", "load_dataset", "segment_steps", "scene_properties", "build_field",
+           "build_renderer", "build_module", "loss_config", "event_decay",
+           "check_training_split", "select_views", "select_fps",
            "train_segment", "load_segment", "evaluate_run", "run_info", "planned_run_info",
            "check_checkpoint"]
 
@@ -90,7 +91,8 @@ def select_views(split: SplitData, n: int | None) -> SplitData:
     if n is None or n == V:
         return split
     if not 1 <= n <= V:
-        raise InputError("config", "data.views", f"an integer in [1, {V}] (views in the dataset)", n)
+        raise InputError("config", "data.views", f"an integer in [1, {V}] (views in the dataset)",
+                         n)
     idx = sorted({int(i) for i in np.floor(np.arange(n) * V / n)})
     return replace(
         split, cameras=split.cameras.select(idx),
@@ -101,7 +103,7 @@ def select_views(split: SplitData, n: int | None) -> SplitData:
 
 
 def select_fps(split: SplitData, fps: float | None, duration_s: float) -> SplitData:
-    """The frames nearest to a ``fps`` grid ``k · 1000 / (fps · duration_s)``, ``k < fps·duration_s``.
+    """The frames nearest to the grid ``k · 1000 / (fps · duration_s)``, ``k < fps · duration_s``.
 
     A rate ``F`` over a clip of ``D`` seconds keeps ``max(1, floor(F·D))`` frames (the grid
     is half-open, like a camera's shutter): 0.5 FPS over 2 s is one set of frames, as in
@@ -312,7 +314,8 @@ def _trainer(cfg: DictConfig, seg_dir: Path, callbacks: list, k: int,
     logger: Any = False
     if cfg.logger and cfg.logger.get("_target_"):
         lg = dict(OmegaConf.to_container(cfg.logger, resolve=True))
-        logger = get_class(lg.pop("_target_"))(save_dir=str(seg_dir.parent), version=f"seg{k}", **lg)
+        logger = get_class(lg.pop("_target_"))(save_dir=str(seg_dir.parent), version=f"seg{k}",
+                                               **lg)
         logger.log_hyperparams(flat_hparams(cfg))
     kwargs = OmegaConf.to_container(cfg.trainer.lightning, resolve=True)
     return L.Trainer(max_steps=max_steps, default_root_dir=str(seg_dir),

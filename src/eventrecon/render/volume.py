@@ -108,9 +108,9 @@ class Renderer(nn.Module):
     union. The field's outputs at the coarse samples are reused, not recomputed, in the
     fine level: the field is a deterministic function of ``(x, t)`` with the same
     parameters at both levels, so values and gradients are identical to evaluating the
-    union afresh, with 192 field evaluations per ray instead of 256 at 64 + 128 samples. Rays that miss the clipping
-    volume are not sent to the field (their colour is the background); points outside the
-    cylinder get ``σ = 0``.
+    union afresh, with 192 field evaluations per ray instead of 256 at 64 + 128 samples.
+    Rays that miss the clipping volume are not sent to the field (their colour is the
+    background); points outside the cylinder get ``σ = 0``.
 
     The renderer has no parameters. ``clip_scale`` (in [0, 1]) multiplies the cylinder
     radius; schedules set it through ``pl_module.renderer.clip_scale``.

@@ -11,7 +11,8 @@ the paper's, ours and ``Δ = ours − paper``. Rules:
   Tab. 5 by ``fps``, Tab. 6/7 by ``views`` (``nerf``/``full`` runs only). Values that the
   paper does not have become extra rows (paper "—").
 - Columns: Tab. 3 maps our synthetic scenes onto the paper's columns through
-  ``SCENE_TO_PAPER`` (``spheres`` → "Spheres", ``static`` → "Static Lego"); paper columns without a counterpart show
+  ``SCENE_TO_PAPER`` (``spheres`` → "Spheres", ``static`` → "Static Lego"); paper columns
+  without a counterpart show
   "—" for ours, our scenes without one get their own column with "—" for the paper.
   Tab. 4–6 pair the paper's "Sword" with the rig-like scene (``rig_lowlight`` by default),
   Tab. 7 pairs "Dress" with the synthetic scene that has the most view counts.
