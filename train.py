@@ -46,6 +46,8 @@ def main(cfg: DictConfig) -> float | None:
     from eventrecon.module import NonFiniteLossError
     from eventrecon.runner import run
 
+    _one_log_stream()
+
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN
     _share_cores_between_parallel_jobs()
@@ -86,6 +88,20 @@ def main(cfg: DictConfig) -> float | None:
              metrics.get("ssim", float("nan")), lp_txt, metrics["steps"], metrics["wall_s"],
              out_dir / "metrics.json")
     return metrics.get("psnr")
+
+
+def _one_log_stream() -> None:
+    """Lightning's messages once, through Hydra's handlers (console and the run's log file).
+
+    ``import lightning`` adds its own console handler to the ``lightning`` logger, which
+    also propagates to the root logger that Hydra configured: every message came twice.
+    Lightning's internal ``LeafSpec`` deprecation warning is not the user's to act on.
+    """
+    import warnings
+
+    logging.getLogger("lightning").handlers.clear()
+    warnings.filterwarnings("ignore", message=r".*LeafSpec.*", category=DeprecationWarning)
+    warnings.filterwarnings("ignore", message=r".*LeafSpec.*", category=FutureWarning)
 
 
 def _share_cores_between_parallel_jobs() -> None:

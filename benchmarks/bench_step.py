@@ -6,10 +6,12 @@
 A *real* step is what :class:`eventrecon.module.EventNeRFModule` does each iteration:
 draw the batch (window, balanced rays, event lookups, reference frame), render every
 ray at ``t0, t1, t_ref`` with the coarse and fine passes, the four losses, backward and
-the optimiser step. Its throughput is counted in field samples
-(``3 · n_rays · (n_coarse + n_fine)`` queries per step). The *bare* step is the field
-alone on as many random samples (forward, a trivial loss, backward, optimiser step), as
-``bench_fields`` measures it; ``real/bare`` says how much of the step the rest costs.
+the optimiser step. Its throughput is counted in the samples the field actually
+evaluates (a forward hook counts them: rays that miss the clipping volume are not sent
+to the field, so this is at most ``3 · n_rays · (n_coarse + n_fine)``). The *bare* step
+is the field alone on as many random samples per step (forward, a trivial loss, backward,
+optimiser step), as ``bench_fields`` measures it; ``real/bare`` is the share of the
+field's own speed the whole step keeps (1 = the rest of the step costs nothing).
 Scene: the default ``spheres`` at the ``trainer=cpu`` preset (simulated into ``data/`` if
 missing). Medians over ``--reps`` steps after ``--warmup``.
 """
@@ -65,7 +67,8 @@ def measure(overrides: list[str], reps: int, warmup: int, data_dir: str,
     module = runner.build_module(cfg, props, ds.splits["train"], Segment(0.0, 1000.0))
     opt = module.configure_optimizers()
     n_rays = int(cfg.trainer.n_rays)
-    samples = 3 * n_rays * (int(cfg.trainer.n_coarse) + int(cfg.trainer.n_fine))
+    queried: list[int] = []
+    hook = module.field.register_forward_hook(lambda m, inp, out: queried.append(len(inp[0])))
     state = {"step": 0}
 
     def real() -> None:
@@ -80,6 +83,13 @@ def measure(overrides: list[str], reps: int, warmup: int, data_dir: str,
         loss.backward()
         opt.step()
 
+    per_step = []
+    for _ in range(5):  # the field samples of a real step (median over a few steps)
+        queried.clear()
+        real()
+        per_step.append(sum(queried))
+    samples = int(statistics.median(per_step))
+    hook.remove()
     g = torch.Generator().manual_seed(0)
     xyz, t = torch.rand(samples, 3, generator=g) - 0.5, torch.rand(samples, 1, generator=g)
 

@@ -229,3 +229,20 @@ def test_segment_curves_and_null_settings(tmp_path):
     assert s.times[15.0] == 2.0 and s.times[20.0] == 2.5 and s.best_psnr == 24.0
     t6 = next(iter(_parse_md(to_markdown(build_table("table6", [r]))).values()))
     assert t6["all"]["PSNR↑ ours"] == "25.000" and t6["all"]["PSNR↑ paper"] == "—"
+
+
+def test_copy_runs_keeps_a_regenerable_record(tmp_path):
+    sweep = tmp_path / "multirun" / "table3"
+    write_run(sweep / "row=full,scene=spheres", _metrics("spheres", psnr=25.5),
+              _curve([1.0, 2.0], [20.0, 25.5], ["cheap", "full"]))
+    write_run(sweep / "row=ngp,scene=spheres", _metrics("spheres", model="ngp", psnr=21.0))
+    record = tmp_path / "docs" / "runs"
+    assert main([str(sweep), "--out", str(tmp_path / "out"), "--copy-runs", str(record)]) == 0
+    copied = sorted(p.relative_to(record).as_posix() for p in record.rglob("*.*"))
+    assert copied == ["table3/row=full,scene=spheres/curve.csv",
+                      "table3/row=full,scene=spheres/metrics.json",
+                      "table3/row=ngp,scene=spheres/metrics.json"]
+    # the record alone regenerates the same table
+    assert main([str(record), "--out", str(tmp_path / "again")]) == 0
+    assert ((tmp_path / "again" / "table3.md").read_text()
+            == (tmp_path / "out" / "table3.md").read_text())

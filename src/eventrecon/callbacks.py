@@ -159,7 +159,8 @@ class HeldOutMonitor(L.Callback):
                 {f"val_{kind}/{k}": float(v) for k, v in row.items() if v is not None}, step)
         if full and row["psnr"] > self.best_psnr:
             self.best_psnr = row["psnr"]
-            trainer.save_checkpoint(str(self.out_dir / "checkpoints" / "best.ckpt"))
+            trainer.save_checkpoint(str(self.out_dir / "checkpoints" / "best.ckpt"),
+                                    weights_only=False)
         return row
 
     def _render_pixels(self, field: Any, renderer: Any, v: int, t: float,

@@ -168,7 +168,7 @@ class EventNeRFModule(L.LightningModule):
             ckpt = Path(self.trainer.default_root_dir) / "checkpoints" / "nonfinite-stop.ckpt"
             self.stop_reason = (f"{self.nonfinite_in_row} non-finite losses in a row at step "
                                 f"{step} ({', '.join(bad)}); stopped, checkpoint {ckpt}")
-            self.trainer.save_checkpoint(str(ckpt))
+            self.trainer.save_checkpoint(str(ckpt), weights_only=False)
             raise NonFiniteLossError(self.stop_reason)
         return None
 

@@ -364,7 +364,7 @@ def train_segment(cfg: DictConfig, props: SceneProperties, train: SplitData,
     trainer.fit(module, datamodule=data, ckpt_path=ckpt)
     last = seg_dir / "checkpoints" / "last.ckpt"
     if module.stop_reason is None and _checkpoint_step(last) != int(trainer.global_step):
-        trainer.save_checkpoint(str(last))  # max_steps not a multiple of checkpoint_every
+        trainer.save_checkpoint(str(last), weights_only=False)  # the final step's weights
     wall = monitor.wall - wall_offset if monitor is not None else time.perf_counter() - t
     return module, wall
 

@@ -36,6 +36,10 @@ def main(argv: list[str] | None = None) -> int:
         "--curves-experiment", default="table3",
         help="sweep whose loss=full runs make the accuracy-vs-time comparison (default table3)"
     )
+    ap.add_argument(
+        "--copy-runs", metavar="DIR", default=None,
+        help="also copy every run's metrics.json and curve.csv below DIR (a committable record)"
+    )
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
@@ -46,6 +50,12 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for p in paths:
         log.info("wrote %s", p)
+    if args.copy_runs:
+        from eventrecon.report.runs import collect_runs, copy_runs
+
+        copied = copy_runs(collect_runs(args.dirs), args.dirs, args.copy_runs)
+        log.info("copied %d runs' metrics.json and curve.csv below %s", len(copied),
+                 args.copy_runs)
     return 0
 
 

@@ -24,6 +24,7 @@ import csv
 import json
 import logging
 import math
+import shutil
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -144,6 +145,24 @@ def collect_runs(dirs: Iterable[str | Path]) -> list[Run]:
             except InputError as exc:
                 log.warning("skipped run: %s", exc)
     return sorted(runs.values(), key=lambda r: str(r.path))
+
+
+def copy_runs(runs: Iterable[Run], roots: Iterable[str | Path], dest: str | Path) -> list[Path]:
+    """Copy each run's ``metrics.json`` and ``curve.csv`` (with their times) to
+    ``dest/<root name>/<path below the root>/``: a small, committable record from which
+    the tables and the accuracy-vs-time figure can be regenerated. Returns the folders."""
+    roots = [Path(r).resolve() for r in roots]
+    out = []
+    for run in runs:
+        src = Path(run.path).resolve()
+        root = next((r for r in roots if src == r or r in src.parents), src.parent)
+        target = Path(dest) / root.name / src.relative_to(root)
+        target.mkdir(parents=True, exist_ok=True)
+        for name in (METRICS_FILE, CURVE_FILE):
+            if (src / name).is_file():
+                shutil.copy2(src / name, target / name)
+        out.append(target)
+    return out
 
 
 def read_curve(folder: str | Path) -> dict[str, np.ndarray]:
