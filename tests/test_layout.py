@@ -310,3 +310,15 @@ def test_training_split_without_events_or_frames_is_one_line(scene, tmp_path: Pa
     cfg = tiny_config(tmp_path, "data=real", f"data.root={root}")
     with pytest.raises(InputError, match=rf"train/{missing}: <folder>: expected .*, got missing"):
         runner.run(cfg, tmp_path / "run")
+
+
+def test_groundtruth_split_is_the_one_evaluated(scene, tmp_path: Path):
+    """Published synthetic scenes carry sharp held-out renders in groundtruth/."""
+    from eventrecon.runner import heldout_split
+
+    root, _ = scene
+    assert heldout_split(read_dataset(root)).root == root / "validation"
+    write_split(root / "groundtruth", seed=9, views=2, n_events=10)
+    ds = read_dataset(root)
+    assert set(ds.splits) == {"train", "validation", "groundtruth"}
+    assert heldout_split(ds).root == root / "groundtruth"

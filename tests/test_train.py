@@ -14,6 +14,7 @@ import torch
 from integration import tiny_config
 
 from eventrecon import runner
+from eventrecon.errors import InputError
 from eventrecon.data.batcher import Segment
 from eventrecon.losses import total_loss
 from eventrecon.module import step_generator
@@ -99,6 +100,22 @@ def test_multisegment_run_trains_each_segment_and_crossfades(data_dir: Path, tmp
     no_multi = runner.run(tiny_config(data_dir, "trainer.max_steps=4", "loss=no_multiseg",
                                       "+scene.segments=[[0,510],[490,1000]]"), tmp_path / "b")
     assert no_multi["segments"] == [[0.0, 1000.0]]
+
+
+def test_segments_trained_by_separate_jobs_equal_one_run(data_dir: Path, tmp_path: Path):
+    """``-m data.segment=0,1``: jobs share the run folder; the first reports 'partial', the
+    one completing the set evaluates — with exactly the metrics of one run training both."""
+    seg = ["trainer.max_steps=4", "+scene.segments=[[0,510],[490,1000]]"]
+    whole = runner.run(tiny_config(data_dir, *seg), tmp_path / "whole")
+    first = runner.run(tiny_config(data_dir, *seg, "data.segment=0"), tmp_path / "jobs")
+    assert first["status"] == "partial" and first["missing_segments"] == [1]
+    assert not (tmp_path / "jobs" / "metrics.json").exists()
+    second = runner.run(tiny_config(data_dir, *seg, "data.segment=1"), tmp_path / "jobs")
+    assert second["status"] == "ok" and second["steps"] == whole["steps"] == 8
+    for key in ("psnr", "ssim"):
+        assert second[key] == whole[key], key  # segment 0 loaded from its checkpoint
+    with pytest.raises(InputError, match=r"data\.segment: expected a segment index in \[0, 1\]"):
+        runner.run(tiny_config(data_dir, *seg, "data.segment=2"), tmp_path / "bad")
 
 
 def test_views_and_fps_selection(data_dir: Path):

@@ -40,7 +40,7 @@ from eventrecon.segments import resolve_segments
 
 __all__ = ["run", "load_dataset", "segment_steps", "scene_properties", "build_field",
            "build_renderer", "build_module", "loss_config", "event_decay",
-           "check_training_split", "select_views", "select_fps",
+           "heldout_split", "check_training_split", "select_views", "select_fps",
            "train_segment", "load_segment", "evaluate_run", "run_info", "planned_run_info",
            "check_checkpoint"]
 
@@ -67,6 +67,12 @@ def scene_properties(cfg: DictConfig, ds: Dataset) -> SceneProperties:
     """ε, θ, decay, Bayer, duration, segments and cylinder of the run's data
     (``data.*`` over ``meta.json``; see :mod:`eventrecon.data.properties`)."""
     return resolve_properties(cfg.data, ds.meta, ds.root)
+
+
+def heldout_split(ds: Dataset) -> SplitData | None:
+    """The split evaluated: ``groundtruth/`` (the published synthetic scenes' sharp
+    held-out renders) when present, else ``validation/`` (ours: sharp renders too)."""
+    return ds.splits.get("groundtruth") or ds.splits.get("validation")
 
 
 def check_training_split(split: SplitData) -> None:
@@ -462,7 +468,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
     check_training_split(ds.splits["train"])
     train = select_views(ds.splits["train"], cfg.data.views)
     train = select_fps(train, cfg.data.fps, props.duration_s)
-    heldout = ds.splits.get("validation")
+    heldout = heldout_split(ds)
     segments = resolve_segments(props.segments, cfg.loss.multiseg)
     if cfg.data.segment is not None and not 0 <= int(cfg.data.segment) < len(segments):
         raise InputError("config", "data.segment",
@@ -538,9 +544,9 @@ def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False)
     cfg = OmegaConf.load(cfg_path)
     ds = load_dataset(cfg)
     props = scene_properties(cfg, ds)
-    heldout = ds.splits.get("validation")
+    heldout = heldout_split(ds)
     if heldout is None:
-        raise InputError(ds.root, "validation/", "a held-out split to evaluate")
+        raise InputError(ds.root, "validation/ or groundtruth/", "a held-out split to evaluate")
     segments = resolve_segments(props.segments, cfg.loss.multiseg)
     models = [load_segment(cfg, props, run_dir / f"seg{k}", ckpt) for k in range(len(segments))]
     views = list(range(heldout.n_views))

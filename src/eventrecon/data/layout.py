@@ -55,8 +55,9 @@ __all__ = ["read_split", "read_dataset", "match_views", "view_key", "list_views"
 
 log = logging.getLogger(__name__)
 
-#: Splits read by :func:`read_dataset` (when present), in this order.
-SPLITS: tuple[str, ...] = ("train", "validation")
+#: Splits read by :func:`read_dataset` (when present), in this order. ``groundtruth`` is
+#: the published synthetic scenes' folder of sharp held-out renders (same layout).
+SPLITS: tuple[str, ...] = ("train", "validation", "groundtruth")
 
 _TRAILING_INT = re.compile(r"(\d+)$")
 
@@ -286,7 +287,8 @@ def read_dataset(root: str | Path, *, binary_polarity: bool = False,
     """Read a scene: the splits of :data:`SPLITS` that exist, plus ``meta.json``.
 
     Args:
-        root: the scene folder holding ``train/`` (required) and ``validation/``.
+        root: the scene folder holding ``train/`` (required), ``validation/`` and, for
+            the published synthetic scenes, ``groundtruth/``.
         binary_polarity, rigid_tol: as in :func:`read_split`.
 
     Returns:
