@@ -14,8 +14,8 @@ import torch
 from integration import tiny_config
 
 from eventrecon import runner
-from eventrecon.errors import InputError
 from eventrecon.data.batcher import Segment
+from eventrecon.errors import InputError
 from eventrecon.losses import total_loss
 from eventrecon.module import step_generator
 
