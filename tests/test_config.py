@@ -97,3 +97,24 @@ def test_every_yaml_starts_with_usage_comment():
         if first.startswith("# @package"):
             first = p.read_text().splitlines()[1]
         assert first.startswith("# "), p
+
+
+@pytest.mark.parametrize("launcher,target", [
+    ("joblib", "hydra_plugins.hydra_joblib_launcher.joblib_launcher.JoblibLauncher"),
+    ("submitit_slurm", "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher"),
+    ("slurm_gpu", "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher"),
+])
+def test_sweep_launchers_compose(launcher: str, target: str):
+    """The existing engines for scale: joblib locally, SLURM through submitit."""
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose(config_name="config", return_hydra_config=True,
+                      overrides=["experiment=table6", "scale=smoke", f"hydra/launcher={launcher}"])
+    assert cfg.hydra.launcher._target_ == target
+    if launcher == "slurm_gpu":
+        assert (cfg.hydra.launcher.gpus_per_node, cfg.hydra.launcher.timeout_min) == (1, 1440)
+
+
+def test_ddp_trainer_preset():
+    cfg = _compose("trainer=ddp")
+    assert cfg.trainer.lightning.strategy == "ddp" and cfg.trainer.lightning.devices == -1
+    assert (cfg.trainer.n_rays, cfg.trainer.n_coarse, cfg.trainer.n_fine) == (1024, 64, 128)
