@@ -118,3 +118,10 @@ def test_ddp_trainer_preset():
     cfg = _compose("trainer=ddp")
     assert cfg.trainer.lightning.strategy == "ddp" and cfg.trainer.lightning.devices == -1
     assert (cfg.trainer.n_rays, cfg.trainer.n_coarse, cfg.trainer.n_fine) == (1024, 64, 128)
+
+
+def test_davis_size_is_one_override_for_every_scene():
+    for scene in ("spheres", "blocks", "rig_lowlight", "static"):
+        cfg = _compose(f"scene={scene}", "resolution=davis346")
+        assert (cfg.scene.width, cfg.scene.height) == (346, 260), scene
+        assert cfg.scene.name == scene
