@@ -71,17 +71,20 @@ def measure(overrides: list[str], reps: int, warmup: int, data_dir: str,
     hook = module.field.register_forward_hook(lambda m, inp, out: queried.append(len(inp[0])))
     state = {"step": 0}
 
-    def real() -> None:
-        s = state["step"] = state["step"] + 1
-        gen = step_generator(0, s)
-        batch = module.batcher.sample(n_rays, gen)
-        loss = total_loss(module.render_three(batch, gen), batch, module.loss_cfg, s)["loss"]
+    def optimise(loss: torch.Tensor) -> None:
+        """The field's regulariser, backward and the optimiser step (both kinds of step)."""
         reg = module.field.regularization()
         if reg is not None:
             loss = loss + reg
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
+
+    def real() -> None:
+        s = state["step"] = state["step"] + 1
+        gen = step_generator(0, s)
+        batch = module.batcher.sample(n_rays, gen)
+        optimise(total_loss(module.render_three(batch, gen), batch, module.loss_cfg, s)["loss"])
 
     per_step = []
     for _ in range(5):  # the field samples of a real step (median over a few steps)
@@ -95,13 +98,7 @@ def measure(overrides: list[str], reps: int, warmup: int, data_dir: str,
 
     def bare() -> None:
         sigma, rgb = module.field(xyz, t)
-        loss = sigma.mean() + rgb.mean()
-        reg = module.field.regularization()
-        if reg is not None:
-            loss = loss + reg
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
+        optimise(sigma.mean() + rgb.mean())
 
     real_s = _median_time(real, reps, warmup)
     bare_s = _median_time(bare, reps, warmup)
