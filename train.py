@@ -55,7 +55,8 @@ def main(cfg: DictConfig) -> float | None:
     if multirun and done.exists() and cfg.data.segment is None:
         previous = json.loads(done.read_text())
         if (previous.get("status") == "ok"
-                and int(previous.get("max_steps", -1)) == int(cfg.trainer.max_steps)):
+                and int(previous.get("max_steps", -1)) == int(cfg.trainer.max_steps)
+                and (not cfg.evaluate or "psnr" in previous)):
             log.info("%s: finished before, skipped", out_dir)
             return previous.get("psnr")
     try:

@@ -33,8 +33,8 @@ def test_reevaluation_equals_the_runs_own_metrics(run_dir: Path):
     again = json.loads((run_dir / "metrics_eval.json").read_text())
     assert again["checkpoint"] == "last" and again["n_frames"] == trained["n_frames"] == 11
     assert again["psnr"] == trained["psnr"] and again["ssim"] == trained["ssim"]
-    pngs = sorted((run_dir / "renders").rglob("*.png"))
-    assert len(pngs) == 11 and (run_dir / "renders" / "06.gif").stat().st_size > 1000
+    pngs = sorted((run_dir / "eval_last" / "renders").rglob("*.png"))
+    assert len(pngs) == 11 and (run_dir / "eval_last" / "renders" / "06.gif").stat().st_size > 1000
 
 
 def test_colour_corrected_variant_is_separate_and_off_by_default(run_dir: Path):

@@ -132,3 +132,57 @@ def test_views_and_fps_selection(data_dir: Path):
         runner.select_fps(train, 1000.0, float(ds.meta["duration_s"]))
     with pytest.raises(InputError, match="data.views"):
         runner.select_views(train, 7)
+
+
+def test_select_fps_tolerates_rounded_frame_names_and_one_frame(data_dir: Path):
+    from dataclasses import replace
+
+    train = runner.load_dataset(tiny_config(data_dir)).splits["train"]
+    # frame folders named to 1e-4 units: a 3.7 s clip at 5 FPS (step 54.054...)
+    times = np.round(np.arange(len(train.frame_times)) * 1000 / 18.5, 4)
+    odd = replace(train, frame_times=times)
+    assert len(runner.select_fps(odd, 5.0, 3.7).frame_times) == len(times)  # all kept
+    one = replace(train, frame_times=times[:1], frames=train.frames[:1])
+    assert runner.select_fps(one, 100.0, 3.7).frame_times.tolist() == [0.0]
+
+
+def test_schedules_follow_each_segments_own_length(data_dir: Path):
+    cfg = tiny_config(data_dir, "trainer.max_steps=1000", "trainer.split_steps=true",
+                      "model.anneal_steps=${of_run:0.1}", "loss.sparsity_ramp=${of_run:0.2}")
+    steps = runner.segment_steps(cfg, 5)
+    seg = runner.segment_config(cfg, steps)
+    assert steps == 200 and seg.trainer.max_steps == 200 and not seg.trainer.split_steps
+    assert (seg.model.anneal_steps, seg.loss.sparsity_ramp) == (20, 40)  # of 200, not 1000
+    assert runner.segment_config(tiny_config(data_dir), 10) is not None
+
+
+def test_merge_curves_makes_steps_and_wall_clock_cumulative(tmp_path: Path):
+    for k, (rows, steps, wall) in enumerate([([(1.0, 5), (2.0, 10)], 10, 2.5),
+                                             ([(0.5, 5), (3.0, 10)], 10, 3.0)]):
+        d = tmp_path / f"seg{k}"
+        d.mkdir()
+        (d / "curve.csv").write_text("wall_s,step,psnr,ssim,lpips,kind\n" + "".join(
+            f"{w},{s},20,,,cheap\n" for w, s in rows))
+        (d / "done.json").write_text(json.dumps({"steps": steps, "wall_s": wall}))
+    runner.merge_curves([tmp_path / "seg0", tmp_path / "seg1"], tmp_path / "curve.csv")
+    lines = (tmp_path / "curve.csv").read_text().splitlines()[1:]
+    assert [tuple(ln.split(",")[:2]) for ln in lines] == [
+        ("1.000", "5"), ("2.000", "10"), ("3.000", "15"), ("5.500", "20")]
+
+
+def test_one_checkpoint_cannot_resume_several_segments(data_dir: Path, tmp_path: Path):
+    cfg = tiny_config(data_dir, "trainer.max_steps=2", "+scene.segments=[[0,510],[490,1000]]",
+                      f"ckpt_path={tmp_path / 'x.ckpt'}")
+    with pytest.raises(InputError, match=r"ckpt_path: expected 'last', or one checkpoint "
+                                         r"with data\.segment=K"):
+        runner.run(cfg, tmp_path / "run")
+
+
+def test_a_longer_trained_segment_is_not_silently_reused(data_dir: Path, tmp_path: Path):
+    runner.run(tiny_config(data_dir, "trainer.max_steps=6", "evaluate=false"), tmp_path)
+    shorter = tiny_config(data_dir, "trainer.max_steps=4", "evaluate=false")
+    with pytest.raises(InputError, match=r"last\.ckpt: global_step: expected at most this "
+                                         r"run's 4 steps per segment.*got 6"):
+        runner.run(shorter, tmp_path)
+    longer = runner.run(tiny_config(data_dir, "trainer.max_steps=8", "evaluate=false"), tmp_path)
+    assert longer["steps"] == 8  # resumed from step 6 and trained on

@@ -23,6 +23,7 @@ so curves of different backbones compare training cost. Rows go to ``curve.csv``
 from __future__ import annotations
 
 import csv
+import io
 import logging
 import math
 import time
@@ -56,7 +57,7 @@ class HeldOutMonitor(L.Callback):
 
     def __init__(self, split: SplitData, segment: Segment, out_dir: Path, curve_every: int,
                  eval_every: int, image_every: int, curve_pixels: int, chunk: int,
-                 seed: int = 0, wall_offset: float = 0.0) -> None:
+                 seed: int = 0) -> None:
         self.split, self.segment, self.out_dir = split, segment, Path(out_dir)
         self.curve_every, self.eval_every, self.image_every = curve_every, eval_every, image_every
         self.chunk = chunk
@@ -72,23 +73,27 @@ class HeldOutMonitor(L.Callback):
         self.pix = torch.randperm(n_pix, generator=g)[: min(curve_pixels, n_pix)]
         self.bg = background_linear(split)
         self.best_psnr = -math.inf
-        self.wall = wall_offset
+        self.wall = 0.0  # this segment's training seconds (restored on resume)
         self._t_last: float | None = None
         self._full_at: int | None = None  # the step of the last full evaluation
         self.curve_path = self.out_dir / "curve.csv"
 
     # -------------------------------------------------------------- wall clock
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        """On resume, forget curve rows written after the checkpoint being resumed."""
-        if not self.curve_path.exists():
+        """On resume, forget curve rows written after the checkpoint being resumed (the
+        replayed steps log them again); rank 0 only, written atomically."""
+        if not trainer.is_global_zero or not self.curve_path.exists():
             return
         step = int(trainer.global_step)
         with self.curve_path.open(newline="") as f:
             rows = list(csv.reader(f))
         kept = rows[:1] + [r for r in rows[1:] if r and int(r[1]) <= step]
         if len(kept) != len(rows):
-            with self.curve_path.open("w", newline="") as f:
-                csv.writer(f).writerows(kept)
+            from eventrecon.checkpointing import atomic_write_bytes
+
+            buf = io.StringIO()
+            csv.writer(buf).writerows(kept)
+            atomic_write_bytes(self.curve_path, buf.getvalue().encode())
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule,
                              batch: Any, batch_idx: int) -> None:

@@ -201,16 +201,26 @@ EXTERNAL_TRIGGERS: frozenset[int] = frozenset({1, 2, 3, 4, 5})
 def check_trigger_sync(recordings: Sequence[Recording], tolerance_us: int = 100) -> int | None:
     """Compare the external triggers of synchronised cameras; return the largest spread.
 
-    Returns ``None`` when the check does not apply (a camera has no external trigger, or
-    the cameras recorded different numbers of them — e.g. one started later).
+    Only the triggers inside the shared span (every camera recording) are compared, so
+    cameras started or stopped at different times still check. Returns ``None`` when the
+    check does not apply (a camera has no external trigger in the span, or the cameras
+    saw different numbers of them there: logged, not compared).
 
     Raises:
         InputError: the k-th external trigger differs by more than ``tolerance_us``
             between the first camera and another one (the clocks are not synchronised).
     """
-    ext = [r.triggers["t"][np.isin(r.triggers["source"], list(EXTERNAL_TRIGGERS))]
-           .astype(np.int64) for r in recordings]
-    if not ext or any(e.size == 0 for e in ext) or len({e.size for e in ext}) != 1:
+    s0, s1 = shared_span(recordings)
+    ext = []
+    for r in recordings:
+        t = r.triggers["t"][np.isin(r.triggers["source"], list(EXTERNAL_TRIGGERS))]
+        t = t.astype(np.int64)
+        ext.append(np.sort(t[(t >= s0 - tolerance_us) & (t <= s1 + tolerance_us)]))
+    if not ext or any(e.size == 0 for e in ext):
+        return None
+    if len({e.size for e in ext}) != 1:
+        log.warning("external triggers in the shared span differ in number between cameras "
+                    "(%s): synchronisation not checked", [int(e.size) for e in ext])
         return None
     spread = [np.abs(e - ext[0]) for e in ext]
     worst = max(int(d.max()) for d in spread)

@@ -25,9 +25,10 @@ _STATUS = Path("/proc/self/status")
 _CLEAR = Path("/proc/self/clear_refs")
 
 
-def reset_peak() -> bool:
-    """Start a new peak; ``False`` if the CPU peak cannot be reset here."""
-    if torch.cuda.is_available():
+def reset_peak(cuda: bool = False) -> bool:
+    """Start a new peak (also of the current GPU's allocations with ``cuda``; without it
+    no CUDA context is created); ``False`` if the CPU peak cannot be reset here."""
+    if cuda and torch.cuda.is_available():
         torch.cuda.reset_peak_memory_stats()
     try:
         _CLEAR.write_text("5")
@@ -47,9 +48,10 @@ def _vm_hwm_kb() -> int | None:
     return None
 
 
-def peak_mb() -> float:
-    """Peak memory since :func:`reset_peak` in MiB (GPU allocations if a GPU is used)."""
-    if torch.cuda.is_available() and torch.cuda.max_memory_allocated() > 0:
+def peak_mb(cuda: bool = False) -> float:
+    """Peak memory since :func:`reset_peak` in MiB: the GPU's allocations with ``cuda``,
+    else the process's resident set."""
+    if cuda and torch.cuda.is_available():
         return torch.cuda.max_memory_allocated() / 2**20
     kb = _vm_hwm_kb()
     if kb is None:

@@ -135,7 +135,7 @@ class EventNeRFModule(L.LightningModule):
         step = int(self.global_step)
         gen = step_generator(self.step_cfg.seed, step, stream=int(self.global_rank))
         batch = self.batcher.sample(self.step_cfg.n_rays, gen)
-        self.last_window = (float(batch["t0"][0, 0]), float(batch["t1"][0, 0]))
+        self.last_window = self.batcher.last_window  # Python floats: no device sync
         levels = self.render_three(batch, gen)
         terms = total_loss(levels, batch, self.loss_cfg, step)
         loss = terms["loss"]

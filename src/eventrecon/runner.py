@@ -32,6 +32,7 @@ from eventrecon.data.properties import SceneProperties, resolve_properties
 from eventrecon.data.types import Dataset, SplitData
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
+from eventrecon.locks import exclusive
 from eventrecon.losses import LossConfig
 from eventrecon.memory import peak_mb, reset_peak
 from eventrecon.module import EventNeRFModule, StepConfig, field_class_name
@@ -120,12 +121,15 @@ def select_fps(split: SplitData, fps: float | None, duration_s: float) -> SplitD
     if fps <= 0:
         raise InputError("config", "data.fps", "a positive frame rate", fps)
     times = np.asarray(split.frame_times, dtype=np.float64)
+    if len(times) < 2:
+        return split  # one set of frames: every rate keeps it
     step = 1000.0 / (fps * duration_s)
-    native_step = float(np.min(np.diff(times))) if len(times) > 1 else math.inf
-    if step < native_step - 1e-6:
+    native_step = float(np.median(np.diff(times)))
+    tol = 1e-3 * native_step  # frame folders are named to 1e-4 time units
+    if step < native_step - tol:
         native = 1000.0 / (native_step * duration_s)
         raise InputError("config", "data.fps", f"at most the dataset's {native:g} FPS", fps)
-    if step <= native_step + 1e-6:
+    if step <= native_step + tol:
         return split
     n = max(1, int(math.floor(fps * duration_s + 1e-9)))
     grid = np.arange(n) * step
@@ -250,20 +254,23 @@ def planned_run_info(cfg: DictConfig) -> dict[str, Any]:
 
 
 def merge_curves(seg_dirs: list[Path], out: Path) -> None:
-    """One ``curve.csv`` for the run: segment rows in order, steps made cumulative."""
+    """One ``curve.csv`` for the run: the segments' rows in order, with step and wall-clock
+    made cumulative (each segment starts where the previous one's ``done.json`` ended)."""
     import csv
 
-    rows, offset = [], 0
+    rows: list[dict[str, str]] = []
+    step0, wall0 = 0, 0.0
     for d in seg_dirs:
         path = d / "curve.csv"
-        if not path.exists():
-            continue
-        with path.open(newline="") as f:
-            seg_rows = list(csv.DictReader(f))
-        for r in seg_rows:
-            r["step"] = str(int(r["step"]) + offset)
-        rows += seg_rows
-        offset = int(rows[-1]["step"]) if rows else offset
+        if path.exists():
+            with path.open(newline="") as f:
+                for r in csv.DictReader(f):
+                    r["step"] = str(int(r["step"]) + step0)
+                    r["wall_s"] = f"{float(r['wall_s']) + wall0:.3f}"
+                    rows.append(r)
+        done = json.loads((d / "done.json").read_text()) if (d / "done.json").exists() else {}
+        step0 += int(done.get("steps", 0))
+        wall0 += float(done.get("wall_s", 0.0))
     if rows:
         with out.open("w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=list(rows[0]))
@@ -311,6 +318,14 @@ def segment_steps(cfg: DictConfig, n_segments: int) -> int:
     return math.ceil(total / n_segments) if cfg.trainer.get("split_steps") else total
 
 
+def segment_config(cfg: DictConfig, steps: int) -> DictConfig:
+    """``cfg`` with ``trainer.max_steps`` = the segment's own steps, so that schedules written
+    as fractions of the run (``${of_run:f}``) take the shape of the run each model trains."""
+    if int(cfg.trainer.max_steps) == steps and not cfg.trainer.get("split_steps"):
+        return cfg
+    return OmegaConf.merge(cfg, {"trainer": {"max_steps": steps, "split_steps": False}})
+
+
 def _trainer(cfg: DictConfig, seg_dir: Path, callbacks: list, k: int,
              max_steps: int) -> L.Trainer:
     from lightning.pytorch.callbacks import ModelCheckpoint
@@ -331,14 +346,14 @@ def _trainer(cfg: DictConfig, seg_dir: Path, callbacks: list, k: int,
 
 
 def train_segment(cfg: DictConfig, props: SceneProperties, train: SplitData,
-                  heldout: SplitData | None, k: int, seg: Segment, out_dir: Path,
-                  wall_offset: float = 0.0, max_steps: int | None = None
+                  heldout: SplitData | None, k: int, seg: Segment, out_dir: Path
                   ) -> tuple[EventNeRFModule, float]:
-    """Train (or resume) segment ``k`` for ``max_steps`` (default ``trainer.max_steps``);
-    returns the module and its training seconds."""
-    max_steps = int(cfg.trainer.max_steps) if max_steps is None else int(max_steps)
+    """Train (or resume) segment ``k`` for ``cfg.trainer.max_steps`` steps (a config from
+    :func:`segment_config`); returns the module and the segment's training seconds (a
+    resumed segment counts the time before the interruption too)."""
     from eventrecon.callbacks import HeldOutMonitor
 
+    max_steps = int(cfg.trainer.max_steps)
     seg_dir = out_dir / f"seg{k}"
     L.seed_everything(cfg.seed + 1000 * k, workers=True, verbose=False)
     module = build_module(cfg, props, None, seg, k)
@@ -349,8 +364,7 @@ def train_segment(cfg: DictConfig, props: SceneProperties, train: SplitData,
     if heldout is not None:
         monitor = HeldOutMonitor(heldout, seg, seg_dir, cfg.trainer.curve_every,
                                  cfg.trainer.eval_every, cfg.trainer.image_every,
-                                 cfg.trainer.curve_pixels, cfg.trainer.chunk, cfg.seed,
-                                 wall_offset)
+                                 cfg.trainer.curve_pixels, cfg.trainer.chunk, cfg.seed)
         callbacks.append(monitor)
     trainer = _trainer(cfg, seg_dir, callbacks, k, max_steps)
     ckpt = None
@@ -365,13 +379,17 @@ def train_segment(cfg: DictConfig, props: SceneProperties, train: SplitData,
         ckpt = str(cfg.ckpt_path)
     if ckpt:
         check_checkpoint(ckpt, module.field)
-        log.info("segment %d: resuming from %s", k, ckpt)
+        step = _checkpoint_step(Path(ckpt))
+        if step is not None and step > max_steps:
+            raise InputError(ckpt, "global_step",
+                             f"at most this run's {max_steps} steps per segment (a run "
+                             "trained longer: use a new output folder)", step)
+        log.info("segment %d: resuming from %s (step %s)", k, ckpt, step)
     t = time.perf_counter()
     trainer.fit(module, datamodule=data, ckpt_path=ckpt)
-    last = seg_dir / "checkpoints" / "last.ckpt"
-    if module.stop_reason is None and _checkpoint_step(last) != int(trainer.global_step):
-        trainer.save_checkpoint(str(last), weights_only=False)  # the final step's weights
-    wall = monitor.wall - wall_offset if monitor is not None else time.perf_counter() - t
+    if module.stop_reason is None:  # every rank: saving is a collective call under DDP
+        trainer.save_checkpoint(str(seg_dir / "checkpoints" / "last.ckpt"), weights_only=False)
+    wall = monitor.wall if monitor is not None else time.perf_counter() - t
     return module, wall
 
 
@@ -416,12 +434,12 @@ def _global_rank() -> int:
 
 
 def _done(seg_dir: Path, max_steps: int) -> dict | None:
-    """The ``done.json`` of a segment trained to at least ``max_steps``, else ``None``."""
+    """The ``done.json`` of a segment trained with exactly this budget, else ``None``."""
     path = seg_dir / "done.json"
     if not path.exists():
         return None
     done = json.loads(path.read_text())
-    return done if int(done.get("max_steps", -1)) >= max_steps else None
+    return done if int(done.get("max_steps", -1)) == max_steps else None
 
 
 def load_segment(cfg: DictConfig, props: SceneProperties, seg_dir: Path, ckpt: str = "last"
@@ -447,93 +465,136 @@ def load_segment(cfg: DictConfig, props: SceneProperties, seg_dir: Path, ckpt: s
     return field.eval(), renderer
 
 
+def _device(cfg: DictConfig) -> torch.device:
+    """Where the run trains (and evaluates): its GPU when the trainer asks for one."""
+    gpu = str(cfg.trainer.lightning.accelerator) in ("gpu", "cuda", "auto")
+    return torch.device("cuda" if gpu and torch.cuda.is_available() else "cpu")
+
+
 def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
     """Train every segment of the run and evaluate; returns (and saves) the metrics.
 
-    Segments already trained to ``max_steps`` (their ``seg<k>/done.json``) are not
-    trained again. With ``data.segment=k`` only segment ``k`` is trained; the job that
-    completes the last missing segment of the folder evaluates the whole run (so a
-    multirun over ``data.segment``, whose jobs share one folder, ends cross-faded).
+    Each segment trains ``segment_steps`` steps with the config of :func:`segment_config`
+    and records ``seg<k>/done.json``; a segment done with this budget is not trained again.
+    With ``data.segment=k`` only segment ``k`` is trained; the job that completes the last
+    missing segment of the folder evaluates the whole run, under a lock, once (a multirun
+    over ``data.segment``, whose jobs share one folder, ends cross-faded).
     """
-    from eventrecon.evaluate import evaluate_heldout, render_heldout, write_renders
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
-    reset_peak()
+    device = _device(cfg)
+    reset_peak(cuda=device.type == "cuda")
     ds = load_dataset(cfg)
     if "train" not in ds.splits:
         raise InputError(ds.root, "train/", "a training split")
     props = scene_properties(cfg, ds)
     check_training_split(ds.splits["train"])
     train = select_views(ds.splits["train"], cfg.data.views)
-    train = select_fps(train, cfg.data.fps, props.duration_s)
+    if cfg.data.fps is not None and props.duration_s is None:
+        raise InputError("config", "data.duration_s", "the clip's length in seconds (data.fps "
+                         "needs it; the dataset's meta.json does not say)", "missing")
+    train = select_fps(train, cfg.data.fps, props.duration_s or 1.0)
     heldout = heldout_split(ds)
     segments = resolve_segments(props.segments, cfg.loss.multiseg)
     if cfg.data.segment is not None and not 0 <= int(cfg.data.segment) < len(segments):
         raise InputError("config", "data.segment",
                          f"a segment index in [0, {len(segments) - 1}]", cfg.data.segment)
     todo = range(len(segments)) if cfg.data.segment is None else [int(cfg.data.segment)]
+    if cfg.ckpt_path not in (None, "last") and len(todo) > 1:
+        raise InputError("config", "ckpt_path", f"'last', or one checkpoint with data.segment=K "
+                         f"(one file cannot resume {len(todo)} segments)", cfg.ckpt_path)
     info = run_info(cfg, ds.meta, views=train.n_views, fps=cfg.data.fps or props.rgb_fps)
-    max_steps = segment_steps(cfg, len(segments))
+    steps = segment_steps(cfg, len(segments))
+    seg_cfg = segment_config(cfg, steps)
     log.info("run %s: %d training views, %d RGB frames, %d segment(s), %d steps each",
-             info, train.n_views, len(train.frame_times), len(segments), max_steps)
+             info, train.n_views, len(train.frame_times), len(segments), steps)
     modules: dict[int, EventNeRFModule] = {}
-    wall = 0.0
     for k in todo:
         seg_dir = out_dir / f"seg{k}"
-        if _done(seg_dir, max_steps) is not None:
+        if _done(seg_dir, steps) is not None:
             log.info("segment %d: trained before (%s), not trained again", k,
                      seg_dir / "done.json")
             continue
-        modules[k], w = train_segment(cfg, props, train, heldout, k, segments[k], out_dir, wall,
-                                      max_steps)
-        wall += w
+        module, wall = train_segment(seg_cfg, props, train, heldout, k, segments[k], out_dir)
         if _global_rank() != 0:
             continue  # DDP: rank 0 records and evaluates
         atomic_write_json(seg_dir / "done.json", {
-            "max_steps": max_steps, "steps": int(modules[k].global_step), "wall_s": w,
-            "nonfinite_steps": modules[k].nonfinite_total})
+            "max_steps": steps, "steps": int(module.global_step), "wall_s": wall,
+            "nonfinite_steps": module.nonfinite_total})
+        module.batcher = None  # the segment's training data is not needed any more
+        modules[k] = module
     if _global_rank() != 0:
         return {**info, "status": "ok", "error": None, "rank": _global_rank()}
-    dones = [_done(out_dir / f"seg{k}", max_steps) for k in range(len(segments))]
     metrics: dict[str, Any] = {**info, "status": "ok", "error": None,
                                "max_steps": int(cfg.trainer.max_steps),
-                               "steps_per_segment": max_steps,
+                               "steps_per_segment": steps,
                                "segments": [[s.start, s.end] for s in segments]}
+    dones = [_done(out_dir / f"seg{k}", steps) for k in range(len(segments))]
     if any(d is None for d in dones):
         missing = [k for k, d in enumerate(dones) if d is None]
         log.info("segments %s not trained yet: the run is evaluated when they are", missing)
         return {**metrics, "status": "partial", "missing_segments": missing}
-    steps = sum(int(d["steps"]) for d in dones)
-    wall_all = sum(float(d["wall_s"]) for d in dones)
-    metrics.update({"wall_s": wall_all, "steps": steps, "sec_per_it": wall_all / max(steps, 1),
+    metrics.update({"steps": sum(int(d["steps"]) for d in dones),
+                    "wall_s": sum(float(d["wall_s"]) for d in dones),
                     "nonfinite_steps": sum(int(d["nonfinite_steps"]) for d in dones)})
-    merge_curves([out_dir / f"seg{k}" for k in range(len(segments))], out_dir / "curve.csv")
-    if cfg.evaluate and heldout is not None:
-        models = [(modules[k].field.eval(), modules[k].renderer) if k in modules
-                  else load_segment(cfg, props, out_dir / f"seg{k}")
-                  for k in range(len(segments))]
-        views = (list(range(heldout.n_views)) if cfg.data.eval_views is None
-                 else list(cfg.data.eval_views))
-        frames = list(range(0, len(heldout.frame_times), int(cfg.data.eval_every_frames)))
-        renders = render_heldout(models, segments, heldout, views, frames,
-                                 chunk=cfg.trainer.chunk)
-        write_renders(renders, heldout, views, frames, out_dir)
-        metrics.update(evaluate_heldout(renders, heldout, views, frames))
-    metrics["peak_mem_mb"] = peak_mb()
-    metrics["total_s"] = time.perf_counter() - t_start
-    atomic_write_json(out_dir / "metrics.json", metrics)
+    metrics["sec_per_it"] = metrics["wall_s"] / max(metrics["steps"], 1)
+    with exclusive(out_dir / ".evaluate.lock"):  # parallel segment jobs: evaluate once
+        previous = _finished_metrics(out_dir / "metrics.json", metrics, cfg.evaluate)
+        if previous is not None:
+            return previous
+        merge_curves([out_dir / f"seg{k}" for k in range(len(segments))],
+                     out_dir / "curve.csv")
+        if cfg.evaluate and heldout is not None:
+            metrics.update(_evaluate(seg_cfg, props, heldout, segments, modules, out_dir,
+                                     device))
+        metrics["peak_mem_mb"] = peak_mb(cuda=device.type == "cuda")
+        metrics["total_s"] = time.perf_counter() - t_start
+        atomic_write_json(out_dir / "metrics.json", metrics)
     return metrics
+
+
+def _finished_metrics(path: Path, expected: dict[str, Any], evaluate: bool) -> dict | None:
+    """``metrics.json`` of the same finished run (same budget and steps), if another job
+    evaluated it already; else ``None``."""
+    if not path.exists():
+        return None
+    done = json.loads(path.read_text())
+    same = (done.get("status") == "ok" and done.get("max_steps") == expected["max_steps"]
+            and done.get("steps") == expected["steps"])
+    return done if same and (not evaluate or "psnr" in done) else None
+
+
+def _evaluate(cfg: DictConfig, props: SceneProperties, heldout: SplitData,
+              segments: list[Segment], modules: dict[int, EventNeRFModule], out_dir: Path,
+              device: torch.device) -> dict[str, Any]:
+    """Render the held-out views (cross-fading segments) on ``device``; write the renders
+    and return PSNR / SSIM / LPIPS. Segments not trained by this process are loaded."""
+    from eventrecon.evaluate import evaluate_heldout, render_heldout, write_renders
+
+    models = []
+    for k in range(len(segments)):
+        field, renderer = ((modules[k].field, modules[k].renderer) if k in modules
+                           else load_segment(cfg, props, out_dir / f"seg{k}"))
+        models.append((field.to(device).eval(), renderer))
+    views = (list(range(heldout.n_views)) if cfg.data.eval_views is None
+             else list(cfg.data.eval_views))
+    frames = list(range(0, len(heldout.frame_times), int(cfg.data.eval_every_frames)))
+    renders = render_heldout(models, segments, heldout, views, frames, chunk=cfg.trainer.chunk)
+    write_renders(renders, heldout, views, frames, out_dir)
+    return evaluate_heldout(renders, heldout, views, frames)
 
 
 def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False) -> dict:
     """Re-evaluate a finished or interrupted run from its saved config and checkpoints.
 
+    Every held-out view at every ground-truth time (the paper's protocol; the run's own
+    ``metrics.json`` may have used a subset, ``data.eval_every_frames``).
     ``ckpt="last"`` (default) scores the final weights; ``"best"`` the checkpoint that
     scored best on the held-out views during training (a choice made on the test data
-    itself, so not an unbiased score). Writes ``metrics_eval.json`` (or
-    ``metrics_eval_cc.json`` with colour correction) beside the run's ``metrics.json``.
+    itself, so not an unbiased score). Renders go to ``eval_<ckpt>/renders/``; the
+    metrics to ``metrics_eval.json`` (``metrics_eval_cc.json`` with colour correction)
+    beside the run's ``metrics.json``.
     """
     from eventrecon.evaluate import evaluate_heldout, render_heldout, write_renders
 
@@ -548,11 +609,13 @@ def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False)
     if heldout is None:
         raise InputError(ds.root, "validation/ or groundtruth/", "a held-out split to evaluate")
     segments = resolve_segments(props.segments, cfg.loss.multiseg)
-    models = [load_segment(cfg, props, run_dir / f"seg{k}", ckpt) for k in range(len(segments))]
+    device = _device(cfg)
+    models = [(field.to(device), renderer) for field, renderer in
+              (load_segment(cfg, props, run_dir / f"seg{k}", ckpt) for k in range(len(segments)))]
     views = list(range(heldout.n_views))
     frames = list(range(len(heldout.frame_times)))
     renders = render_heldout(models, segments, heldout, views, frames, chunk=cfg.trainer.chunk)
-    write_renders(renders, heldout, views, frames, run_dir)
+    write_renders(renders, heldout, views, frames, run_dir / f"eval_{ckpt}")
     metrics = {**run_info(cfg, ds.meta), "checkpoint": ckpt,
                **evaluate_heldout(renders, heldout, views, frames, color_correct=color_correct)}
     name = "metrics_eval.json" if not color_correct else "metrics_eval_cc.json"

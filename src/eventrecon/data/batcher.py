@@ -89,6 +89,8 @@ class RayBatcher:
         self.frame_times = torch.from_numpy(frame_times[idx]).to(self.device)  # time units
         self.frames = torch.from_numpy(srgb_to_linear(split.frames[idx])).to(self.device)
         self.background = background_linear(split).to(self.device)
+        #: ``(t0, t1)`` normalised window of the last :meth:`sample` (Python floats).
+        self.last_window: tuple[float, float] = (0.0, 1.0)
 
     @property
     def n_views(self) -> int:
@@ -105,6 +107,7 @@ class RayBatcher:
         """
         seg, H, W = self.segment, self.cameras.height, self.cameras.width
         t0, t1 = sampling.sample_window(gen)
+        self.last_window = (t0, t1)
         t0u, t1u = float(seg.units(t0)), float(seg.units(t1))
         counts = sampling.rays_per_view(n_rays, self.n_views, gen)
         event_map = self.events.window_all(t0u, t1u) != 0  # [V, H, W]

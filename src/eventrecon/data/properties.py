@@ -5,15 +5,17 @@ Training needs, besides the splits themselves: the log-space guard ``ε``
 pixels are colour (RGGB) pixels, the clip's duration in seconds, its segments and the
 clipping cylinder. Each is taken, in this order, from
 
-1. the run's config ``data.<key>`` when it is not null (``data=real`` sets the
-   published real-data values: ε = 3e-2, b = 0.93, Bayer, five segments);
+1. the run's config ``data.<key>`` when it is not null (an explicit choice);
 2. the dataset's ``meta.json`` (the simulator and the AEDAT4 converter write one);
-3. nowhere else: a dataset without ``meta.json`` and a property not set in the config
-   is an error naming the keys, because the synthetic and the real values differ
-   (ε 1e-2 vs 3e-2, b 1 vs 0.93) and a silent guess trains the wrong method.
+3. ``data.fallback.<key>``: what a preset says for datasets that do not record it
+   (``data=real``: the published real scenes' ε = 3e-2, b = 0.93, Bayer, five segments;
+   ``data=synthetic``: ε = 1e-2, b = 1, one segment) — it never overrides ``meta.json``;
+4. nowhere else: a required property found in none of them is an error naming the
+   keys, because the synthetic and the real values differ (ε 1e-2 vs 3e-2, b 1 vs
+   0.93) and a silent guess trains the wrong method.
 
-``θ`` (0.5), the cylinder (r = 0.5, y ∈ [−0.75, 0.25]) and ``duration_s`` (only used to
-convert ``data.fps`` into frames) have defaults shared by both kinds of data.
+``θ`` (0.5) and the cylinder (r = 0.5, y ∈ [−0.75, 0.25]) have defaults shared by both
+kinds of data; ``duration_s`` has none (``None``: only ``data.fps`` needs it).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ log = logging.getLogger(__name__)
 #: Properties that differ between synthetic and real data: no default.
 REQUIRED: tuple[str, ...] = ("tonemap_eps", "decay", "bayer")
 DEFAULT_CYLINDER: dict[str, float] = {"radius": 0.5, "y_min": -0.75, "y_max": 0.25}
-_DEFAULTS: dict[str, Any] = {"threshold": 0.5, "duration_s": 1.0, "segments": None,
+_DEFAULTS: dict[str, Any] = {"threshold": 0.5, "duration_s": None, "segments": None,
                              "cylinder": None, "rgb_fps": None, "scene_name": None}
 
 
@@ -46,7 +48,7 @@ class SceneProperties:
         threshold: contrast threshold θ (> 0).
         decay: event accumulation decay ``b`` in (0, 1].
         bayer: event pixels are RGGB colour pixels.
-        duration_s: seconds the 1000 time units stand for (> 0).
+        duration_s: seconds the 1000 time units stand for (> 0), or ``None`` if unknown.
         segments: ``[[t0, t1], ...]`` time units, or ``None`` for one segment.
         cylinder: ``{radius, y_min, y_max}`` of the clipping cylinder.
         rgb_fps: the dataset's RGB frame rate, if known.
@@ -57,7 +59,7 @@ class SceneProperties:
     threshold: float
     decay: float
     bayer: bool
-    duration_s: float
+    duration_s: float | None
     segments: list[list[float]] | None
     cylinder: dict[str, float]
     rgb_fps: float | None = None
@@ -69,7 +71,7 @@ class SceneProperties:
 
 def _check(key: str, value: Any, where: str) -> Any:
     """Validate one property; raise :class:`InputError` naming ``where`` and ``key``."""
-    if key in ("tonemap_eps", "threshold", "duration_s"):
+    if key in ("tonemap_eps", "threshold", "duration_s"):  # None never reaches here
         if not isinstance(value, (int, float)) or isinstance(value, bool) or not value > 0:
             raise InputError(where, key, "a number > 0", value)
         return float(value)
@@ -103,7 +105,7 @@ def resolve_properties(overrides: Mapping[str, Any], meta: Mapping[str, Any],
     """Merge config ``overrides`` (``data.*``, null = unset) over the dataset's ``meta``.
 
     Args:
-        overrides: the run's ``data`` config (only the property keys are read).
+        overrides: the run's ``data`` config (the property keys and ``fallback``).
         meta: the dataset's ``meta.json`` contents (``{}`` without one).
         root: the dataset folder, for error messages.
 
@@ -111,12 +113,13 @@ def resolve_properties(overrides: Mapping[str, Any], meta: Mapping[str, Any],
         InputError: a required property is in neither (the message names the keys and
             the ``data=real`` / ``data=synthetic`` presets), or a value is out of range.
 
-    >>> p = resolve_properties({"decay": 0.5}, {"tonemap_eps": 0.01, "decay": 1.0,
-    ...                                          "bayer": False})
-    >>> p.decay, p.tonemap_eps, p.threshold
-    (0.5, 0.01, 0.5)
+    >>> p = resolve_properties({"decay": 0.5, "fallback": {"tonemap_eps": 0.03, "bayer": True}},
+    ...                        {"tonemap_eps": 0.01, "decay": 1.0})
+    >>> p.decay, p.tonemap_eps, p.bayer, p.threshold
+    (0.5, 0.01, True, 0.5)
     """
     meta_file = f"{root}/meta.json" if root is not None else "meta.json"
+    fallback = overrides.get("fallback") or {}
     values: dict[str, Any] = {}
     missing = []
     for key in (*REQUIRED, *_DEFAULTS):
@@ -124,6 +127,8 @@ def resolve_properties(overrides: Mapping[str, Any], meta: Mapping[str, Any],
             values[key] = _check(key, overrides[key], f"config data.{key}")
         elif meta.get(key) is not None:
             values[key] = _check(key, meta[key], meta_file)
+        elif fallback.get(key) is not None:
+            values[key] = _check(key, fallback[key], f"config data.fallback.{key}")
         elif key in REQUIRED:
             missing.append(key)
         else:

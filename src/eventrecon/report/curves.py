@@ -81,12 +81,22 @@ def summarize(run: Run, levels: Sequence[float] = DEFAULT_LEVELS) -> CurveSummar
 
 
 def backbone_runs(runs: Sequence[Run], experiment: str | None = "table3") -> list[Run]:
-    """The runs of the backbone comparison: ``loss=full`` runs of ``experiment`` (the
-    Tab. 3 sweep: its zoo rows and the full model), or of every experiment when that one
-    has none (``experiment=None``: all ``loss=full`` runs)."""
+    """The runs of the backbone comparison: the ``loss=full`` runs of ``experiment`` (the
+    Tab. 3 sweep: its zoo rows and the full model). Without any, those of the experiment
+    (or of the untagged single runs) that has the most backbones, so that sweeps over
+    frame rates or views are not mixed into one plot; ``experiment=None`` takes that
+    choice directly."""
     full = [r for r in runs if r.loss == "full"]
     mine = [r for r in full if experiment is not None and r.experiment == experiment]
-    return mine or full
+    if mine:
+        return mine
+    groups: dict[str | None, list[Run]] = {}
+    for r in full:
+        groups.setdefault(r.experiment, []).append(r)
+    if not groups:
+        return []
+    best = max(groups, key=lambda e: (len({r.model for r in groups[e]}), len(groups[e])))
+    return groups[best]
 def _model_rank(model: str) -> int:
     return MODELS.index(model) if model in MODELS else len(MODELS)
 

@@ -152,11 +152,14 @@ def copy_runs(runs: Iterable[Run], roots: Iterable[str | Path], dest: str | Path
     ``dest/<root name>/<path below the root>/``: a small, committable record from which
     the tables and the accuracy-vs-time figure can be regenerated. Returns the folders."""
     roots = [Path(r).resolve() for r in roots]
+    names = {}
+    for i, r in enumerate(roots):  # two roots of the same name get distinct folders
+        names[r] = r.name if [x.name for x in roots].count(r.name) == 1 else f"{r.name}-{i}"
     out = []
     for run in runs:
         src = Path(run.path).resolve()
         root = next((r for r in roots if src == r or r in src.parents), src.parent)
-        target = Path(dest) / root.name / src.relative_to(root)
+        target = Path(dest) / names.get(root, root.name) / src.relative_to(root)
         target.mkdir(parents=True, exist_ok=True)
         for name in (METRICS_FILE, CURVE_FILE):
             if (src / name).is_file():

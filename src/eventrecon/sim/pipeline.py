@@ -24,6 +24,7 @@ import torch
 
 from eventrecon.data.types import Dataset, SplitData
 from eventrecon.data.writer import write_dataset
+from eventrecon.locks import exclusive
 from eventrecon.sim.config import config_hash, to_plain
 from eventrecon.sim.event_sim import simulate_events
 from eventrecon.sim.frames import render_backgrounds, render_frames
@@ -135,7 +136,7 @@ def ensure_dataset(scene_cfg: object, data_dir: str | Path = "data",
     if (path / "meta.json").is_file() and not force:
         log.info("dataset %s exists; not simulating again", path)
         return path
-    with _exclusive(path.parent / LOCKS / f"{path.name}.lock"):
+    with exclusive(path.parent / LOCKS / f"{path.name}.lock"):
         if (path / "meta.json").is_file() and not force:  # written while we waited
             return path
         ds = simulate_dataset(scene_cfg, path, threads=threads)
@@ -148,15 +149,3 @@ def ensure_dataset(scene_cfg: object, data_dir: str | Path = "data",
 LOCKS = ".locks"
 
 
-@contextmanager
-def _exclusive(lock_path: Path) -> Iterator[None]:
-    """An exclusive advisory lock (``flock``) on ``lock_path``, released on exit or death."""
-    import fcntl
-
-    lock_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(lock_path, "a") as f:
-        fcntl.flock(f.fileno(), fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
