@@ -8,11 +8,11 @@ import logging
 from pathlib import Path
 
 import pytest
+from integration import tiny_config
 from omegaconf import OmegaConf
 
 from eventrecon import runner
 from eventrecon.evaluate import main
-from integration import tiny_config
 
 
 @pytest.fixture(scope="module")
