@@ -362,3 +362,19 @@ def test_render_image_matches_forward_on_the_same_rays() -> None:
     assert torch.allclose(img["rgb"][0, 0], torch.full((3,), 0.25))  # corner misses
     with pytest.raises(InputError, match="bg_image"):
         renderer.render_image(field, cams, 0, 0.5, bg_image=torch.zeros(4, 4, 3))
+
+
+def test_random_draws_come_from_the_generators_device_and_move_to_the_rays() -> None:
+    """A CPU ``(seed, step)`` generator with rays on another device (a GPU in training):
+    the draws are made on the CPU and moved, identical to the CPU result. ``meta`` stands
+    in for the GPU here (no GPU in CI): no numbers, but the devices must line up."""
+    from eventrecon.render.samplers import uniform
+
+    gen = torch.Generator().manual_seed(3)
+    cpu = uniform((4, 5), gen, torch.empty(0, dtype=torch.float64))
+    again = uniform((4, 5), torch.Generator().manual_seed(3), torch.empty(0, device="meta"))
+    assert again.device.type == "meta" and again.shape == (4, 5)
+    assert cpu.dtype == torch.float64 and torch.equal(
+        cpu, uniform((4, 5), torch.Generator().manual_seed(3), torch.empty(0, dtype=torch.float64)))
+    near, far = torch.zeros(4, device="meta"), torch.ones(4, device="meta")
+    assert stratified(near, far, 8, True, torch.Generator().manual_seed(0)).device.type == "meta"
