@@ -137,7 +137,8 @@ def accuracy_table(
 
 def plot_accuracy_vs_time(runs: Sequence[Run], path: str | Path, loss: str | None = "full") -> Path:
     """PSNR (and SSIM, LPIPS where logged) against wall-clock seconds; colour = backbone,
-    line style = scene; ``full`` evaluations as markers, ``cheap`` ones as a thin line.
+    line style = scene; a line through every evaluation of the metric, markers on the
+    ``full`` ones (the only ones with SSIM and LPIPS).
 
     Only runs with ``loss`` (the backbone comparison) are drawn when there are any;
     ``loss=None`` draws every run. Writes a PNG (Agg backend) and returns its path.
@@ -165,13 +166,10 @@ def plot_accuracy_vs_time(runs: Sequence[Run], path: str | Path, loss: str | Non
             name = r.model if len(scenes) == 1 else f"{r.model} / {r.scene}"
             full = c["kind"] == "full"
             col, ls = colours[r.model], styles[r.scene]
-            if (~full).any():
-                ax.plot(c["wall_s"][~full], c[key][~full], ls, color=col, alpha=0.35, lw=1)
-            if full.any():
-                ax.plot(c["wall_s"][full], c[key][full], ls, color=col, marker="o", ms=3,
-                        label=name)
-            else:
-                ax.plot([], [], ls, color=col, label=name)
+            has = np.isfinite(c[key])
+            ax.plot(c["wall_s"][has], c[key][has], ls, color=col, lw=1.3, label=name)
+            if (full & has).any():
+                ax.plot(c["wall_s"][full & has], c[key][full & has], "o", color=col, ms=4)
         ax.set_xlabel("wall-clock time [s]")
         ax.set_ylabel(label)
         if tmax / max(tmin, 1e-9) > 100:
@@ -183,7 +181,7 @@ def plot_accuracy_vs_time(runs: Sequence[Run], path: str | Path, loss: str | Non
     uniq = dict(zip(labels, handles))
     if uniq:
         axes[0][0].legend(uniq.values(), uniq.keys(), fontsize=8)
-    fig.suptitle("Held-out quality vs wall-clock time (markers: full evaluations; thin: cheap)")
+    fig.suptitle("Held-out quality vs wall-clock training time (markers: full evaluations)")
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
