@@ -37,6 +37,44 @@ def test_reevaluation_equals_the_runs_own_metrics(run_dir: Path):
     assert len(pngs) == 11 and (run_dir / "eval_last" / "renders" / "06.gif").stat().st_size > 1000
 
 
+def test_background_only_score_is_what_an_empty_field_renders(run_dir: Path):
+    """``psnr_background`` = the PSNR of a zero-density render, computed independently
+    (background PNGs vs ground-truth PNGs); the run's own metrics carry it."""
+    import numpy as np
+    import torch
+
+    from eventrecon.data.types import srgb_to_linear
+    from eventrecon.evaluate import evaluate_heldout, render_heldout
+    from eventrecon.fields.base import Field
+    from eventrecon.segments import resolve_segments
+
+    cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
+    heldout = runner.heldout_split(runner.load_dataset(cfg))
+    props = runner.scene_properties(cfg, runner.load_dataset(cfg))
+    field, renderer = runner.load_segment(cfg, props, run_dir / "seg0")
+
+    class Empty(Field):  # sigma = 0 everywhere
+        def __init__(self):
+            super().__init__()
+            self.w = torch.nn.Parameter(torch.zeros(()))
+
+        def forward(self, xyz, t):
+            return xyz[:, 0] * 0 * self.w, xyz * 0 + 0.5
+
+    frames = list(range(len(heldout.frame_times)))
+    segments = resolve_segments(None, False)
+    empty = render_heldout([(Empty(), renderer)], segments, heldout, [0], frames)
+    got = evaluate_heldout(empty, heldout, [0], frames, lpips=False)
+    assert got["psnr"] == pytest.approx(got["psnr_background"], abs=1e-9)
+    bg = heldout.background[0].astype(np.float64) / 255.0
+    gt = heldout.frames[:, 0].astype(np.float64) / 255.0
+    ref = np.mean([-10 * np.log10(((bg - g) ** 2).mean()) for g in gt])
+    assert got["psnr_background"] == pytest.approx(ref, abs=0.02)  # bg PNG vs 8-bit re-encode
+    assert np.allclose(srgb_to_linear(heldout.background[0]), empty[0, 0], atol=1e-6)
+    trained = json.loads((run_dir / "metrics.json").read_text())
+    assert trained["psnr_background"] == pytest.approx(got["psnr_background"])
+
+
 def test_colour_corrected_variant_is_separate_and_off_by_default(run_dir: Path):
     assert main([f"run={run_dir}", "color_correct=true"]) == 0
     cc = json.loads((run_dir / "metrics_eval_cc.json").read_text())

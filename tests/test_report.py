@@ -136,9 +136,9 @@ def test_paper_numbers_match_the_supplementary_text():
 
 def test_tables_4_to_7_rows_and_missing(tmp_path):
     jobs = [
-        _metrics("rig_lowlight", loss="no_decay", psnr=24.0),
-        _metrics("rig_lowlight", psnr=25.0, fps=0.5),
-        _metrics("rig_lowlight", psnr=26.0, fps=5.0),
+        _metrics("rig_lowlight", loss="no_decay", psnr=24.0, psnr_background=23.0),
+        _metrics("rig_lowlight", psnr=25.0, fps=0.5, psnr_background=99.0),  # not kept
+        _metrics("rig_lowlight", psnr=26.0, fps=5.0, psnr_background=23.5),
         _metrics("rig_lowlight", psnr=23.0, views=3),
         _metrics("spheres", psnr=20.0, views=2),
         _metrics("spheres", psnr=29.0, views=6),
@@ -152,6 +152,8 @@ def test_tables_4_to_7_rows_and_missing(tmp_path):
     assert rows4["w/o decay"]["PSNR↑ ours"] == "24.000"
     assert rows4["w/o decay"]["PSNR↑ Δ"] == f"{24.0 - 27.119:+.3f}"
     assert rows4["Our Full Model (Final)"]["PSNR↑ ours"] == "26.000"  # fps=5 is the mode
+    md4 = to_markdown(build_table("table4", runs))  # the empty-field score: median of runs
+    assert "`rig_lowlight` rendered empty (background only, zero density) scores 23.250 dB" in md4
     t5 = next(iter(_parse_md(to_markdown(build_table("table5", runs))).values()))
     assert t5["0.5"]["PSNR↑ ours"] == "25.000" and t5["5"]["PSNR↑ ours"] == "26.000"
     assert t5["100"]["PSNR↑ ours"] == "—" and t5["100"]["PSNR↑ paper"] == "27.328"

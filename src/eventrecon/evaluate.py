@@ -63,15 +63,24 @@ def render_heldout(models: Sequence[tuple[Field, Renderer]], segments: Sequence[
 def evaluate_heldout(renders_lin: np.ndarray, split: SplitData, views: Sequence[int],
                      frame_idx: Sequence[int], lpips: bool = True,
                      color_correct: bool = False) -> dict:
-    """PSNR / SSIM / LPIPS of sRGB-encoded renders against the ground-truth PNGs."""
-    from eventrecon.metrics import evaluate_images
+    """PSNR / SSIM / LPIPS of sRGB-encoded renders against the ground-truth PNGs.
 
-    preds, gts = [], []
+    Also ``psnr_background``: the PSNR of the background alone (what a field with zero
+    density everywhere renders) on the same frames. A run whose PSNR is close to it has
+    learnt little of the scene; a low-contrast scene can score high with nothing in it.
+    """
+    from eventrecon.metrics import evaluate_images, psnr
+
+    bg = linear_to_srgb(background_linear(split).clamp(0, 1).numpy()).astype(np.float32) / 255.0
+    preds, gts, empty = [], [], []
     for a, f in enumerate(frame_idx):
         for b, v in enumerate(views):
             preds.append(linear_to_srgb(renders_lin[a, b]).astype(np.float32) / 255.0)
             gts.append(split.frames[f, v].astype(np.float32) / 255.0)
-    return evaluate_images(preds, gts, lpips=lpips, color_correct=color_correct)
+            empty.append(bg[v])
+    result = evaluate_images(preds, gts, lpips=lpips, color_correct=color_correct)
+    result["psnr_background"] = psnr(np.stack(empty), np.stack(gts))
+    return result
 
 
 def write_renders(renders_lin: np.ndarray, split: SplitData, views: Sequence[int],

@@ -6,7 +6,8 @@ A run folder (a Hydra job folder, e.g. ``multirun/<date>/<time>/<job>/``) holds
   "lpips", "lpips_note", "wall_s", "steps", "sec_per_it", "peak_mem_mb", "status",
   "error"}`` (``model`` ∈ nerf | ngp | tensorf_cp | hexplane; ``status`` ok | failed;
   ``lpips`` may be null with a ``lpips_note``); an optional ``"experiment"`` key
-  (e.g. ``"table3"``) says which table the run was swept for;
+  (e.g. ``"table3"``) says which table the run was swept for; an optional
+  ``"psnr_background"``, the PSNR of the background alone (an empty field);
 - ``curve.csv``: header ``wall_s,step,psnr,ssim,lpips,kind`` with ``kind`` = ``cheap``
   (subsampled held-out image between full evaluations) or ``full``; empty cells = NaN.
   Without a top-level one, the segments' ``seg<k>/curve.csv`` are read in order, each

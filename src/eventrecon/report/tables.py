@@ -216,6 +216,11 @@ def build_table(
         if mode:
             fixed = ", ".join(f"{k}={_setting(v)}" for k, v in mode.items())
             notes.append(f"Ours on `{g.scene}` at {fixed}.")
+        empty = [v for r in kept if (v := r.metric("psnr_background")) is not None]
+        if empty:
+            notes.append(f"`{g.scene}` rendered empty (background only, zero density) "
+                         f"scores {float(np.median(empty)):.3f} dB PSNR: a run near it "
+                         "has learnt little of the scene.")
         for r in kept:
             chosen.setdefault((row_of(r, key), g.name), []).append(r)
 
