@@ -182,6 +182,24 @@ def test_static_library_scene_zero_events_at_small_size():
     ds = simulate_dataset(cfg)
     assert sum(len(e) for e in ds.splits["train"].events) == 0
     assert ds.meta["sim"]["pixel_samples"] == 0
+    # its objects are the subject: the background images are the empty stage (the
+    # background colour alone), so an empty field cannot score the frames
+    held = ds.splits["validation"]
+    assert np.all(held.background == np.round(255 * 0.353 ** (1 / 2.2)))
+    assert (held.frames[0, 0] != held.background[0]).any(-1).mean() > 0.03
+
+
+def test_static_objects_are_background_unless_marked_subject():
+    from eventrecon.sim.scene import parse_object
+
+    box = {"type": "box", "size": [0.2, 0.2, 0.2],
+           "texture": {"type": "solid", "color": [0.5, 0.5, 0.5]}}
+    assert parse_object(box, "s", "objects[0].").in_background  # a static prop
+    assert not parse_object({**box, "subject": True}, "s", "objects[0].").in_background
+    spin = {**box, "motion": {"type": "spin", "axis": [0, 1, 0], "turns": 1}}
+    assert not parse_object(spin, "s", "objects[0].").in_background  # moving: never
+    with pytest.raises(InputError, match=r"objects\[0\]\.subject: expected a bool"):
+        parse_object({**box, "subject": "yes"}, "s", "objects[0].")
 
 
 def test_parallel_callers_simulate_once_and_both_get_the_dataset(tmp_path: Path):

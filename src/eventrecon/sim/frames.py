@@ -29,8 +29,8 @@ __all__ = ["render_frames", "render_backgrounds", "empty_scene", "apply_frame_ef
 
 
 def empty_scene(scene: Scene) -> Scene:
-    """The scene without its moving objects."""
-    return Scene([o for o in scene.objects if not o.moves], scene.light, scene.background)
+    """The empty stage: the scene without its moving objects and its static subjects."""
+    return Scene([o for o in scene.objects if o.in_background], scene.light, scene.background)
 
 
 def _render_fn(prend: PixelRenderer, view: int):

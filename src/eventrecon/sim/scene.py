@@ -51,6 +51,8 @@ class SceneObject:
         radius: sphere radius (plane: disc radius); half_size: ``[3]`` box half-extents;
             height: plane y.
         position: ``[3]`` base centre ``c_0``; orientation: ``[3, 3]`` fixed rotation ``R_0``.
+        subject: part of what is reconstructed even when it does not move, so it is left
+            out of the background images (YAML ``subject: true``); moving objects always are.
     """
 
     kind: str
@@ -61,10 +63,16 @@ class SceneObject:
     half_size: np.ndarray | None = None
     height: float = 0.0
     orientation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    subject: bool = False
 
     @property
     def moves(self) -> bool:
         return any(m.moves for m in self.motions)
+
+    @property
+    def in_background(self) -> bool:
+        """Whether the background images (the empty stage) show this object."""
+        return not (self.moves or self.subject)
 
     @property
     def bound_radius(self) -> float:
@@ -174,13 +182,15 @@ def parse_object(raw: Mapping, where: str, pre: str) -> SceneObject:
         return SceneObject(kind, np.array([0.0, h, 0.0]), tex, [], radius=r, height=h)
     pos = get_vec(raw, "position", 3, where, pre, default=(0.0, -0.25, 0.0))
     ori = _orientation(raw.get("orientation"), where, f"{pre}orientation.")
+    subject = get(raw, "subject", bool, where, pre, default=False)
     if kind == "sphere":
         r = get(raw, "radius", float, where, pre, check=lambda v: v > 0, expect="a radius > 0")
-        return SceneObject(kind, pos, tex, motions, radius=r, orientation=ori)
+        return SceneObject(kind, pos, tex, motions, radius=r, orientation=ori, subject=subject)
     size = get_vec(raw, "size", 3, where, pre)
     if np.any(size <= 0):
         raise InputError(where, f"{pre}size", "three edge lengths > 0", size.tolist())
-    return SceneObject(kind, pos, tex, motions, half_size=size / 2, orientation=ori)
+    return SceneObject(kind, pos, tex, motions, half_size=size / 2, orientation=ori,
+                       subject=subject)
 
 
 def parse_scene(cfg: Mapping, where: str) -> Scene:
