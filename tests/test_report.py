@@ -157,6 +157,18 @@ def test_tables_4_to_7_rows_and_missing(tmp_path):
     t5 = next(iter(_parse_md(to_markdown(build_table("table5", runs))).values()))
     assert t5["0.5"]["PSNR↑ ours"] == "25.000" and t5["5"]["PSNR↑ ours"] == "26.000"
     assert t5["100"]["PSNR↑ ours"] == "—" and t5["100"]["PSNR↑ paper"] == "27.328"
+    # another backbone's Tab. 5 sweep fills the table in its own folder, and is never
+    # mixed into the NeRF's: the model is held fixed (the mode) and said in a footnote
+    grid = collect_runs([_sweep(tmp_path / "grid", [
+        _metrics("rig_lowlight", model="hexplane", psnr=27.0, fps=0.5),
+        _metrics("rig_lowlight", model="hexplane", psnr=28.0, fps=5.0),
+        _metrics("rig_lowlight", model="hexplane", loss="no_event", psnr=99.0, fps=1.0)])])
+    md5 = to_markdown(build_table("table5", grid))
+    t5g = next(iter(_parse_md(md5).values()))
+    assert t5g["0.5"]["PSNR↑ ours"] == "27.000" and t5g["5"]["PSNR↑ ours"] == "28.000"
+    assert t5g["1"]["PSNR↑ ours"] == "—" and "at model=hexplane, views=5" in md5
+    mixed = next(iter(_parse_md(to_markdown(build_table("table5", runs + grid))).values()))
+    assert mixed["0.5"]["PSNR↑ ours"] == "25.000" and mixed["5"]["PSNR↑ ours"] == "26.000"
     t6 = next(iter(_parse_md(to_markdown(build_table("table6", runs))).values()))
     assert t6["3"]["PSNR↑ ours"] == "23.000" and t6["2"]["PSNR↑ ours"] == "—"
     md7 = to_markdown(build_table("table7", runs))

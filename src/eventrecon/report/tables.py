@@ -8,16 +8,18 @@ the paper's, ours and ``Δ = ours − paper``. Rules:
   shown in another).
 - Row of a run: Tab. 3/4 by ``(model, loss)`` — a backbone other than ``nerf`` with
   ``loss=full`` gives a backbone row, ``nerf`` gives the ablation row of its loss;
-  Tab. 5 by ``fps``, Tab. 6/7 by ``views`` (``nerf``/``full`` runs only). Values that the
-  paper does not have become extra rows (paper "—").
+  Tab. 5 by ``fps``, Tab. 6/7 by ``views`` (``loss=full`` runs; the backbone is held
+  fixed like the other settings, so a sweep with ``model=hexplane`` fills the table
+  too). Values that the paper does not have become extra rows (paper "—").
 - Columns: Tab. 3 maps our synthetic scenes onto the paper's columns through
   ``SCENE_TO_PAPER`` (``spheres`` → "Spheres", ``static`` → "Static Lego"); paper columns
   without a counterpart show
   "—" for ours, our scenes without one get their own column with "—" for the paper.
   Tab. 4–6 pair the paper's "Sword" with the rig-like scene (``rig_lowlight`` by default),
   Tab. 7 pairs "Dress" with the synthetic scene that has the most view counts.
-- Settings held fixed (views and fps for Tab. 3/4, views for Tab. 5, fps for Tab. 6/7)
-  take the most common value among the table's runs; a footnote says which.
+- Settings held fixed (views and fps for Tab. 3/4; the model and views for Tab. 5, the
+  model and fps for Tab. 6/7) take the most common value among the table's runs; a
+  footnote says which.
 - One run per cell: ok before failed, then the newest. Missing → "—", failed → "failed",
   LPIPS unavailable → "n/a"; nothing is ever made up.
 - Tab. 3's "Average" (ours) is the mean over the scene columns where that row has a value.
@@ -82,16 +84,14 @@ def method_row(run: Run, table: str) -> str | None:
     return label if label in PAPER_TABLES[table].rows else None
 
 
-def _setting(v: float | None) -> str:
-    """``5.0`` → "5", ``0.5`` → "0.5", ``None`` (the config's null) → "all"."""
-    return "all" if v is None else f"{v:g}"
+def _setting(v: float | str | None) -> str:
+    """``5.0`` → "5", ``0.5`` → "0.5", ``None`` (the config's null) → "all", a name as is."""
+    return "all" if v is None else v if isinstance(v, str) else f"{v:g}"
 
 
 def _setting_row(attr: str) -> Callable[[Run, str], str | None]:
     def row(run: Run, table: str) -> str | None:
-        if run.model != "nerf" or run.loss != "full":
-            return None
-        return _setting(getattr(run, attr))
+        return _setting(getattr(run, attr)) if run.loss == "full" else None
 
     return row
 
@@ -107,9 +107,9 @@ ROW_OF: dict[str, Callable[[Run, str], str | None]] = {
 FIXED: dict[str, tuple[str, ...]] = {
     "table3": ("views", "fps"),
     "table4": ("views", "fps"),
-    "table5": ("views",),
-    "table6": ("fps",),
-    "table7": ("fps",),
+    "table5": ("model", "views"),
+    "table6": ("model", "fps"),
+    "table7": ("model", "fps"),
 }
 
 
