@@ -147,6 +147,7 @@ def plot_accuracy_vs_time(runs: Sequence[Run], path: str | Path, loss: str | Non
 
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import NullFormatter
 
     chosen = [r for r in runs if loss is None or r.loss == loss] or list(runs)
     curves = [(r, _curve(r)) for r in chosen]
@@ -174,6 +175,7 @@ def plot_accuracy_vs_time(runs: Sequence[Run], path: str | Path, loss: str | Non
         ax.set_ylabel(label)
         if tmax / max(tmin, 1e-9) > 100:
             ax.set_xscale("log")
+            ax.xaxis.set_minor_formatter(NullFormatter())  # decades only: no overlapping labels
         ax.grid(alpha=0.3)
     if not curves:
         axes[0][0].text(0.5, 0.5, "no curve.csv found", ha="center", transform=axes[0][0].transAxes)
