@@ -16,7 +16,6 @@ sweep (``-m``) a failing job writes ``metrics.json`` with ``status: failed`` ins
 
 from __future__ import annotations
 
-import json
 import logging
 import sys
 from pathlib import Path
@@ -44,21 +43,18 @@ def _pick_trainer_preset(argv: list[str]) -> list[str]:
 def main(cfg: DictConfig) -> float | None:
     from eventrecon.errors import InputError
     from eventrecon.module import NonFiniteLossError
-    from eventrecon.runner import run
+    from eventrecon.runner import finished_metrics, run
 
     _one_log_stream()
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN
     _share_cores_between_parallel_jobs()
-    done = out_dir / "metrics.json"
-    if multirun and done.exists() and cfg.data.segment is None:
-        previous = json.loads(done.read_text())
-        if (previous.get("status") == "ok"
-                and int(previous.get("max_steps", -1)) == int(cfg.trainer.max_steps)
-                and (not cfg.evaluate or "psnr" in previous)):
-            log.info("%s: finished before, skipped", out_dir)
-            return previous.get("psnr")
+    previous = (finished_metrics(out_dir / "metrics.json", cfg.trainer.max_steps, cfg.evaluate)
+                if multirun and cfg.data.segment is None else None)
+    if previous is not None:
+        log.info("%s: finished before, skipped", out_dir)
+        return previous.get("psnr")
     try:
         metrics = run(cfg, out_dir)
     except (InputError, NotImplementedError) as e:

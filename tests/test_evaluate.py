@@ -49,8 +49,8 @@ def test_background_only_score_is_what_an_empty_field_renders(run_dir: Path):
     from eventrecon.segments import resolve_segments
 
     cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
-    heldout = runner.heldout_split(runner.load_dataset(cfg))
-    props = runner.scene_properties(cfg, runner.load_dataset(cfg))
+    ds = runner.load_dataset(cfg)
+    heldout, props = runner.heldout_split(ds), runner.scene_properties(cfg, ds)
     field, renderer = runner.load_segment(cfg, props, run_dir / "seg0")
 
     class Empty(Field):  # sigma = 0 everywhere

@@ -43,7 +43,7 @@ __all__ = ["run", "load_dataset", "segment_steps", "scene_properties", "build_fi
            "build_renderer", "build_module", "loss_config", "event_decay",
            "heldout_split", "check_training_split", "select_views", "select_fps",
            "train_segment", "load_segment", "evaluate_run", "run_info", "planned_run_info",
-           "check_checkpoint"]
+           "check_checkpoint", "finished_metrics"]
 
 log = logging.getLogger(__name__)
 
@@ -540,7 +540,8 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
                     "nonfinite_steps": sum(int(d["nonfinite_steps"]) for d in dones)})
     metrics["sec_per_it"] = metrics["wall_s"] / max(metrics["steps"], 1)
     with exclusive(out_dir / ".evaluate.lock"):  # parallel segment jobs: evaluate once
-        previous = _finished_metrics(out_dir / "metrics.json", metrics, cfg.evaluate)
+        previous = finished_metrics(out_dir / "metrics.json", metrics["max_steps"],
+                                    cfg.evaluate, metrics["steps"])
         if previous is not None:
             return previous
         merge_curves([out_dir / f"seg{k}" for k in range(len(segments))],
@@ -554,24 +555,35 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
     return metrics
 
 
-def _finished_metrics(path: Path, expected: dict[str, Any], evaluate: bool) -> dict | None:
-    """``metrics.json`` of the same finished run (same budget and steps), if another job
-    evaluated it already; else ``None``."""
+def finished_metrics(path: Path, max_steps: int, evaluate: bool,
+                     steps: int | None = None) -> dict | None:
+    """``metrics.json`` of the same finished run (status ok, the same ``max_steps`` and,
+    when given, the same ``steps``; scored if ``evaluate``), else ``None``."""
     if not path.exists():
         return None
     done = json.loads(path.read_text())
-    same = (done.get("status") == "ok" and done.get("max_steps") == expected["max_steps"]
-            and done.get("steps") == expected["steps"])
+    same = (done.get("status") == "ok" and done.get("max_steps") == int(max_steps)
+            and (steps is None or done.get("steps") == steps))
     return done if same and (not evaluate or "psnr" in done) else None
+
+
+def _render_and_score(models: list[tuple[Field, Renderer]], segments: list[Segment],
+                      heldout: SplitData, views: list[int], frames: list[int], out_dir: Path,
+                      chunk: int, color_correct: bool = False) -> dict[str, Any]:
+    """Render the held-out ``views`` at ``frames`` (cross-fading segments), write the PNGs
+    and GIFs below ``out_dir`` and return PSNR / SSIM / LPIPS (and ``psnr_background``)."""
+    from eventrecon.evaluate import evaluate_heldout, render_heldout, write_renders
+
+    renders = render_heldout(models, segments, heldout, views, frames, chunk=chunk)
+    write_renders(renders, heldout, views, frames, out_dir)
+    return evaluate_heldout(renders, heldout, views, frames, color_correct=color_correct)
 
 
 def _evaluate(cfg: DictConfig, props: SceneProperties, heldout: SplitData,
               segments: list[Segment], modules: dict[int, EventNeRFModule], out_dir: Path,
               device: torch.device) -> dict[str, Any]:
-    """Render the held-out views (cross-fading segments) on ``device``; write the renders
-    and return PSNR / SSIM / LPIPS. Segments not trained by this process are loaded."""
-    from eventrecon.evaluate import evaluate_heldout, render_heldout, write_renders
-
+    """Score the run's held-out views on ``device`` as configured (``data.eval_views``,
+    ``data.eval_every_frames``). Segments not trained by this process are loaded."""
     models = []
     for k in range(len(segments)):
         field, renderer = ((modules[k].field, modules[k].renderer) if k in modules
@@ -580,9 +592,8 @@ def _evaluate(cfg: DictConfig, props: SceneProperties, heldout: SplitData,
     views = (list(range(heldout.n_views)) if cfg.data.eval_views is None
              else list(cfg.data.eval_views))
     frames = list(range(0, len(heldout.frame_times), int(cfg.data.eval_every_frames)))
-    renders = render_heldout(models, segments, heldout, views, frames, chunk=cfg.trainer.chunk)
-    write_renders(renders, heldout, views, frames, out_dir)
-    return evaluate_heldout(renders, heldout, views, frames)
+    return _render_and_score(models, segments, heldout, views, frames, out_dir,
+                             cfg.trainer.chunk)
 
 
 def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False) -> dict:
@@ -596,8 +607,6 @@ def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False)
     metrics to ``metrics_eval.json`` (``metrics_eval_cc.json`` with colour correction)
     beside the run's ``metrics.json``.
     """
-    from eventrecon.evaluate import evaluate_heldout, render_heldout, write_renders
-
     run_dir = Path(run_dir)
     cfg_path = run_dir / ".hydra" / "config.yaml"
     if not cfg_path.exists():
@@ -614,10 +623,9 @@ def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False)
               (load_segment(cfg, props, run_dir / f"seg{k}", ckpt) for k in range(len(segments)))]
     views = list(range(heldout.n_views))
     frames = list(range(len(heldout.frame_times)))
-    renders = render_heldout(models, segments, heldout, views, frames, chunk=cfg.trainer.chunk)
-    write_renders(renders, heldout, views, frames, run_dir / f"eval_{ckpt}")
     metrics = {**run_info(cfg, ds.meta), "checkpoint": ckpt,
-               **evaluate_heldout(renders, heldout, views, frames, color_correct=color_correct)}
+               **_render_and_score(models, segments, heldout, views, frames,
+                                   run_dir / f"eval_{ckpt}", cfg.trainer.chunk, color_correct)}
     name = "metrics_eval.json" if not color_correct else "metrics_eval_cc.json"
     atomic_write_json(run_dir / name, metrics)
     return metrics
