@@ -40,6 +40,8 @@ tensorboard: install
 bench: install
 	$(PY) -m benchmarks $(ARGS)
 
+# tables and accuracy vs time of every local run, into multirun/report/ (git-ignored);
+# the committed docs/results/ only when asked by name: make tables ARGS="--out docs/results"
 tables: install
 	$(PY) -m eventrecon.report multirun outputs $(ARGS)
 

@@ -260,3 +260,35 @@ def test_copy_runs_keeps_a_regenerable_record(tmp_path):
     assert main([str(record), "--out", str(tmp_path / "again")]) == 0
     assert ((tmp_path / "again" / "table3.md").read_text()
             == (tmp_path / "out" / "table3.md").read_text())
+
+
+def test_cli_default_out_is_git_ignored_and_leaves_docs_results_alone(tmp_path, monkeypatch):
+    import shutil
+    import subprocess
+
+    from eventrecon.report.__main__ import DEFAULT_OUT
+
+    repo = Path(__file__).resolve().parents[1]
+    monkeypatch.chdir(tmp_path)  # a checkout-like tree: committed results + a local sweep
+    committed = tmp_path / "docs" / "results"
+    committed.mkdir(parents=True)
+    (committed / "table3.md").write_text("committed\n")
+    before = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in committed.rglob("*")}
+    _sweep(tmp_path, [_metrics("spheres", psnr=27.0)], "table3")
+
+    assert main(["multirun", "outputs"]) == 0  # what `make tables` runs
+    out = tmp_path / DEFAULT_OUT
+    assert out == tmp_path / "multirun" / "report"
+    assert (out / "table3.md").stat().st_size > 0 and (out / "accuracy_vs_time.png").is_file()
+    assert {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in committed.rglob("*")} == before
+    # the report inside multirun/ is not read back as runs by the next `make tables`
+    first = (out / "table3.md").read_text()
+    assert main(["multirun", "outputs"]) == 0 and (out / "table3.md").read_text() == first
+    # and the project's .gitignore keeps it out of the tree
+    git = shutil.which("git")
+    if git is None or not (repo / ".git").exists():
+        pytest.skip("no git checkout to check .gitignore against")
+    written = [p.relative_to(tmp_path).as_posix() for p in out.iterdir()]
+    ignored = subprocess.run([git, "-C", str(repo), "check-ignore", "--no-index", *written],
+                             capture_output=True, text=True, check=False).stdout.split()
+    assert sorted(ignored) == sorted(written)

@@ -3,14 +3,25 @@
 from __future__ import annotations
 
 import array
+import sys
 from dataclasses import dataclass, field
 
+import libusb_package
 import pytest
 import usb.backend
+import usb.backend.libusb0
+import usb.backend.libusb1
+import usb.backend.openusb
 import usb.core
 import usb.util
 
-from eventrecon.capture.usb import INSTALL_HINT, LibusbMissing, check_rig, list_cameras
+from eventrecon.capture.usb import (
+    INSTALL_HINT,
+    LibusbMissing,
+    check_rig,
+    default_backend,
+    list_cameras,
+)
 from eventrecon.rig import main
 
 
@@ -166,3 +177,65 @@ def test_no_libusb_says_how_to_install_in_one_line(monkeypatch, capsys):
     assert main(["list"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and INSTALL_HINT in err
+
+
+def _fake_libusb(monkeypatch, system: object | None, bundled: object | None) -> list:
+    """libusb-1.0 loads from the system (``find_library=None``) and/or from libusb-package."""
+    calls: list = []
+
+    def get_backend(find_library=None):
+        calls.append(find_library)
+        if find_library is None:
+            return system
+        assert find_library is libusb_package.find_library
+        return bundled
+
+    monkeypatch.setattr(usb.backend.libusb1, "get_backend", get_backend)
+    for m in (usb.backend.libusb0, usb.backend.openusb):
+        monkeypatch.setattr(m, "get_backend", lambda *a, **k: None)
+    return calls
+
+
+def test_backend_is_the_systems_libusb_first(monkeypatch):
+    system, bundled = SimulatedBus([davis(0)]), SimulatedBus([])
+    calls = _fake_libusb(monkeypatch, system, bundled)
+    assert default_backend() is system
+    assert calls == [None]  # the bundled one is not even tried
+    assert [c.serial for c in list_cameras()] == ["00000000"]
+
+
+def test_backend_falls_back_to_the_bundled_libusb(monkeypatch):
+    bundled = SimulatedBus([davis(1)])
+    calls = _fake_libusb(monkeypatch, None, bundled)
+    assert default_backend() is bundled
+    assert calls == [None, libusb_package.find_library]
+    assert [c.serial for c in list_cameras()] == ["00000001"]
+
+
+def test_neither_backend_is_one_line_error(monkeypatch, capsys):
+    _fake_libusb(monkeypatch, None, None)
+    with pytest.raises(LibusbMissing, match="apt-get install libusb-1.0-0"):
+        default_backend()
+    monkeypatch.setitem(sys.modules, "libusb_package", None)  # wheel not installed at all
+    with pytest.raises(LibusbMissing):
+        default_backend()
+    assert main(["check", "--expect", "6"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and INSTALL_HINT in err
+
+
+def test_bundled_libusb_ships_with_the_wheel_and_loads():
+    path = libusb_package.get_library_path()
+    assert path is not None and path.is_file()  # a fresh install needs no system libusb
+    assert usb.backend.libusb1.get_backend(find_library=libusb_package.find_library) is not None
+
+
+def test_cli_no_cameras_on_the_bus(capsys):
+    bus = SimulatedBus(OTHERS)  # a mouse and a NIC, no iniVation device
+    assert main(["list"], backend=bus) == 0
+    captured = capsys.readouterr()
+    assert captured.out == "no cameras found\n" and captured.err == ""
+    assert main(["check", "--expect", "6"], backend=bus) == 1
+    out = capsys.readouterr().out.splitlines()
+    assert out == ["no cameras found", "PROBLEM: missing cameras: expected 6 DAVIS346, found 0",
+                   "1 problem(s)"]

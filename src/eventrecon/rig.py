@@ -1,13 +1,15 @@
 """Rig tools: ``python -m eventrecon.rig list | check --expect 6 | calibrate-crf ...``.
 
-- ``list``: the iniVation cameras on USB with model, serial, bus/address, port, link speed.
+- ``list``: the iniVation cameras on USB with model, serial, bus/address, port, link speed
+  ("no cameras found", exit 0, when there are none).
 - ``check --expect 6``: the six-camera check; exits 1 and names every problem (missing
   cameras, a camera not on a SuperSpeed link, duplicate serials).
 - ``calibrate-crf --images DIR | --csv FILE``: fits the linear CRF offset ε from an
   exposure sweep (single pixels, saturated roll-off and clipped zeros excluded), prints
   ε and saves a plot like the supplementary's Fig. 9.
 
-Exit codes: 0 ok, 1 rig problems, 2 bad input or no libusb (one line on stderr).
+libusb is the system's when it is installed, else the one bundled by ``libusb-package``.
+Exit codes: 0 ok, 1 rig problems, 2 bad input or no libusb loads (one line on stderr).
 """
 
 from __future__ import annotations
@@ -60,8 +62,11 @@ def main(argv: Sequence[str] | None = None, backend: object | None = None) -> in
             cams = list_cameras(backend)
             for c in cams:
                 _out(c.describe())
+            if not cams:
+                _out("no cameras found")
             if args.cmd == "list":
-                _out(f"{len(cams)} iniVation camera(s)")
+                if cams:
+                    _out(f"{len(cams)} iniVation camera(s)")
                 return 0
             problems = check_rig(cams, args.expect, None if args.model == "any" else args.model)
             for pr in problems:

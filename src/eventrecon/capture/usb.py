@@ -11,6 +11,10 @@ Link speed is pyusb's ``Device.speed`` (libusb's negotiated speed:
 it, the device descriptor's ``bcdUSB`` (≥ 0x0300 for a USB3 device) is the fallback —
 weaker, since a USB3 device on a USB2 port still reports its own ``bcdUSB``.
 
+libusb itself comes from the system when it is installed, otherwise from the
+``libusb-package`` wheel (a project dependency that bundles libusb-1.0), so a fresh install
+needs nothing installed by hand: see :func:`default_backend`.
+
 Everything goes through pyusb's backend interface, so tests run on a simulated bus
 (``backend=`` any :class:`usb.backend.IBackend`).
 """
@@ -20,11 +24,15 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
+import usb.backend
+import usb.backend.libusb0
+import usb.backend.libusb1
+import usb.backend.openusb
 import usb.core
 import usb.util
 
 __all__ = ["INIVATION_VENDOR_ID", "PRODUCTS", "CameraInfo", "LibusbMissing", "INSTALL_HINT",
-           "list_cameras", "check_rig", "speed_name"]
+           "default_backend", "list_cameras", "check_rig", "speed_name"]
 
 log = logging.getLogger(__name__)
 
@@ -41,14 +49,56 @@ _SPEEDS: dict[int, str] = {
     5: "SuperSpeed+ (10 Gb/s, USB3.1)",
 }
 
-#: The one line shown when pyusb finds no libusb.
-INSTALL_HINT: str = ("no libusb backend for pyusb: install libusb-1.0 "
+#: The one line shown when neither the system's libusb nor the bundled one loads.
+INSTALL_HINT: str = ("no libusb backend for pyusb (neither the system's libusb nor the one "
+                     "bundled by libusb-package loads): install libusb-1.0 "
                      "(Debian/Ubuntu: `sudo apt-get install libusb-1.0-0`, macOS: "
                      "`brew install libusb`, conda: `conda install -c conda-forge libusb`)")
 
 
 class LibusbMissing(RuntimeError):
-    """pyusb has no backend (libusb is not installed); the message says how to fix it."""
+    """pyusb has no backend (no libusb loads); the message says how to fix it."""
+
+
+def _system_libusb1() -> usb.backend.IBackend | None:
+    return usb.backend.libusb1.get_backend()
+
+
+def _bundled_libusb1() -> usb.backend.IBackend | None:
+    """libusb-1.0 from the ``libusb-package`` wheel (``None`` if that is not installed)."""
+    try:
+        import libusb_package
+    except ImportError:
+        return None
+    # not libusb_package.get_libusb1_backend(): it caches its answer for the process
+    return usb.backend.libusb1.get_backend(find_library=libusb_package.find_library)
+
+
+def _system_other() -> usb.backend.IBackend | None:
+    """pyusb's remaining backends (openusb, libusb-0.1), tried last: they report no speed."""
+    return usb.backend.openusb.get_backend() or usb.backend.libusb0.get_backend()
+
+
+#: (what, loader) in order of preference.
+_BACKENDS = (("system libusb-1.0", _system_libusb1),
+             ("libusb-1.0 bundled by libusb-package", _bundled_libusb1),
+             ("system openusb/libusb-0.1", _system_other))
+
+
+def default_backend() -> usb.backend.IBackend:
+    """The pyusb backend used when none is given: the system's libusb-1.0 when it loads,
+    else the one bundled by ``libusb-package``, else openusb / libusb-0.1.
+
+    Raises:
+        LibusbMissing: none of them loads (message: :data:`INSTALL_HINT`).
+    """
+    for what, load in _BACKENDS:
+        backend = load()
+        if backend is not None:
+            lib = getattr(getattr(backend, "lib", None), "_name", None)
+            log.info("pyusb backend: %s%s", what, f" ({lib})" if lib else "")
+            return backend
+    raise LibusbMissing(INSTALL_HINT)
 
 
 def speed_name(speed: int | None) -> str:
@@ -116,11 +166,14 @@ def list_cameras(backend: object | None = None) -> list[CameraInfo]:
     """All iniVation devices on the bus, sorted by (bus, port path).
 
     Args:
-        backend: a pyusb backend (default: pyusb's choice of libusb1/openusb/libusb0).
+        backend: a pyusb backend (default: :func:`default_backend`, the system's libusb
+            first, the bundled one second).
 
     Raises:
-        LibusbMissing: pyusb found no backend (message: :data:`INSTALL_HINT`).
+        LibusbMissing: no libusb loads (message: :data:`INSTALL_HINT`).
     """
+    if backend is None:
+        backend = default_backend()
     try:
         devices = list(usb.core.find(find_all=True, idVendor=INIVATION_VENDOR_ID,
                                      backend=backend))

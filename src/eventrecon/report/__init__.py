@@ -1,6 +1,7 @@
 """Reports: the paper's Tables 3–7 beside our runs, and accuracy vs wall-clock time.
 
-``python -m eventrecon.report DIR... [--out docs/results]`` (or :func:`build_report`)
+``python -m eventrecon.report DIR... [--out DIR]`` (or :func:`build_report`;
+default output ``multirun/report/``, git-ignored)
 gathers every ``metrics.json`` under the given folders (Hydra multirun job folders),
 writes ``table3.md``/``.tex`` … ``table7.md``/``.tex`` in the paper's layout (paper,
 ours, Δ; "—" for missing runs, "failed" for failed ones) and ``accuracy_vs_time.png`` /

@@ -1,8 +1,10 @@
-"""``python -m eventrecon.report DIR... [--out docs/results]``: tables and accuracy vs time.
+"""``python -m eventrecon.report DIR... [--out DIR]``: tables and accuracy vs time.
 
 Walks every DIR recursively for run folders (``metrics.json``, ``curve.csv``), writes
 ``table3.md``, ``table3.tex`` … ``table7.tex``, ``accuracy_vs_time.png`` and
-``accuracy_vs_time.md`` into ``--out`` and logs each path.
+``accuracy_vs_time.md`` into ``--out`` and logs each path. The default ``--out`` is
+``multirun/report`` (git-ignored, beside the sweeps), so a report of local runs never
+overwrites the committed results: those are rewritten only with ``--out docs/results``.
 """
 
 from __future__ import annotations
@@ -18,13 +20,21 @@ from eventrecon.report.tables import REAL_SCENE
 
 log = logging.getLogger("eventrecon.report")
 
+#: Where the report goes without ``--out``: git-ignored (``/multirun/`` in .gitignore).
+DEFAULT_OUT: str = "multirun/report"
+
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the CLI; returns the exit code (2: bad input, one line logged)."""
     ap = argparse.ArgumentParser(
         prog="python -m eventrecon.report", description=__doc__.splitlines()[0]
     )
     ap.add_argument("dirs", nargs="+", help="sweep / run folders to search for metrics.json")
-    ap.add_argument("--out", default="docs/results", help="output folder (default: docs/results)")
+    ap.add_argument(
+        "--out", default=DEFAULT_OUT,
+        help=f"output folder (default: {DEFAULT_OUT}, git-ignored; the committed results: "
+             "--out docs/results)"
+    )
     ap.add_argument("--tables", nargs="+", default=list(PAPER_TABLES), choices=list(PAPER_TABLES))
     ap.add_argument(
         "--real-scene", default=REAL_SCENE, help="our counterpart of 'Sword' (Tab. 4-6)"
