@@ -43,7 +43,8 @@ def _pick_trainer_preset(argv: list[str]) -> list[str]:
 def main(cfg: DictConfig) -> float | None:
     from eventrecon.errors import InputError
     from eventrecon.module import NonFiniteLossError
-    from eventrecon.runner import finished_metrics, run
+    from eventrecon.records import finished_metrics
+    from eventrecon.runner import run
 
     _one_log_stream()
 
@@ -57,7 +58,7 @@ def main(cfg: DictConfig) -> float | None:
         return previous.get("psnr")
     try:
         metrics = run(cfg, out_dir)
-    except (InputError, NotImplementedError) as e:
+    except InputError as e:
         if multirun:
             return _record_failure(cfg, out_dir, e)
         log.error("%s", e)
@@ -122,12 +123,11 @@ def _share_cores_between_parallel_jobs() -> None:
 
 def _record_failure(cfg: DictConfig, out_dir: Path, err: BaseException) -> None:
     """Write ``metrics.json`` with ``status: failed`` so the report shows the failure."""
-    from eventrecon.checkpointing import atomic_write_json
-    from eventrecon.runner import planned_run_info
+    from eventrecon.build import planned_run_info
+    from eventrecon.records import write_metrics
 
     info = planned_run_info(cfg)
-    atomic_write_json(out_dir / "metrics.json",
-                      {**info, "status": "failed", "error": f"{type(err).__name__}: {err}"})
+    write_metrics(out_dir, {**info, "status": "failed", "error": f"{type(err).__name__}: {err}"})
     log.error("job failed: %s", err)
     return None
 

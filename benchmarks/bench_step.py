@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 from hydra import compose, initialize_config_dir
 
-from eventrecon import runner
+from eventrecon import build
 from eventrecon.data.batcher import Segment
 from eventrecon.losses import total_loss
 from eventrecon.module import step_generator
@@ -62,9 +62,9 @@ def measure(overrides: list[str], reps: int, warmup: int, data_dir: str,
     """Median seconds of the real and the bare step of one backbone configuration."""
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
         cfg = compose(config_name="config", overrides=[*overrides, f"data_dir={data_dir}"])
-    ds = runner.load_dataset(cfg)
-    props = runner.scene_properties(cfg, ds)
-    module = runner.build_module(cfg, props, ds.splits["train"], Segment(0.0, 1000.0))
+    ds = build.load_dataset(cfg)
+    props = build.scene_properties(cfg, ds)
+    module = build.build_module(cfg, props, ds.splits["train"], Segment(0.0, 1000.0))
     opt = module.configure_optimizers()
     n_rays = int(cfg.trainer.n_rays)
     queried: list[int] = []

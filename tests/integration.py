@@ -12,9 +12,9 @@ CONF = str(Path(__file__).resolve().parents[1] / "conf")
 #: A tiny scene and run: seconds on 2 cores.
 TINY = [
     "scene.width=32", "scene.height=24", "logger=none",
-    "trainer.n_rays=96", "trainer.n_coarse=12", "trainer.n_fine=12",
+    "trainer.n_rays=96", "render.n_coarse=12", "render.n_fine=12",
     "trainer.eval_every=0", "trainer.curve_every=0", "trainer.checkpoint_every=10",
-    "trainer.chunk=4096", "data.eval_every_frames=5",
+    "render.chunk=4096", "data.eval_every_frames=5",
 ]
 #: A tiny NeRF MLP (the default model) for the same runs.
 TINY_NERF = [

@@ -19,8 +19,9 @@ from pathlib import Path
 import pytest
 from integration import TINY, TINY_NERF, tiny_config
 
-from eventrecon import runner
+from eventrecon import build, runner
 from eventrecon.errors import InputError
+from eventrecon.segments import resolve_segments
 from eventrecon.sim.pipeline import ensure_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -119,9 +120,9 @@ def test_module_refuses_foreign_checkpoint_even_without_the_runner(nerf_ckpt: Pa
     import torch
 
     cfg = tiny_config(data_dir, "model=tensorf_cp", base=TINY)
-    ds = runner.load_dataset(cfg)
-    seg = runner.resolve_segments(None, None)[0]
-    mod = runner.build_module(cfg, runner.scene_properties(cfg, ds), ds.splits["train"], seg)
+    ds = build.load_dataset(cfg)
+    seg = resolve_segments(None)[0]
+    mod = build.build_module(cfg, build.scene_properties(cfg, ds), ds.splits["train"], seg)
     state = torch.load(nerf_ckpt, map_location="cpu", weights_only=False)
     with pytest.raises(InputError, match=r"^checkpoint: eventrecon\.field_class: expected a "
                                          r"checkpoint of baselines\.tensorf_cp\.TensoRFCPField"):

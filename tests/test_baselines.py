@@ -340,7 +340,7 @@ def test_model_configs_compose(name, cls, checks):
     for key, val in checks.items():
         assert OmegaConf.to_container(cfg)[key] == val
     if "paper" not in name and "public" not in name:  # CPU presets build quickly
-        from eventrecon.runner import build_field
+        from eventrecon.build import build_field
         f = build_field(cfg)
         s, c = f(*_points(10, 0))
         assert s.shape == (10,) and c.shape == (10, 3)

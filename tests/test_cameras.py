@@ -2,13 +2,8 @@
 
 import torch
 
-from eventrecon.render.cameras import (
-    cameras_from_camdict,
-    cameras_to_camdict,
-    distort,
-    ring_rig,
-    undistort,
-)
+from eventrecon.render.cameras import cameras_from_camdict, cameras_to_camdict, ring_rig
+from eventrecon.render.distortion import distort, undistort
 
 STRONG = (-0.4, 0.2, 1e-3, -2e-3, -0.05)  # like the real rig (k1 ≈ −0.4)
 

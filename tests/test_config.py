@@ -11,7 +11,8 @@ from omegaconf import OmegaConf
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
 TERMS = ("w_event", "w_acc", "w_rgb", "lam_sparsity")
-SWITCHES = ("clipping", "decay", "multiseg")
+#: keys an ablation row changes in the group that uses them
+SWITCHES = (("render", "clipping"), ("data", "decay"), ("data", "segments"))
 
 # preset -> the keys it changes with respect to `full`, and their values
 EXPECTED = {
@@ -23,9 +24,9 @@ EXPECTED = {
     "only_event": {"w_acc": 0.0, "w_rgb": 0.0},
     "only_acc": {"w_event": 0.0, "w_rgb": 0.0},
     "only_rgb": {"w_event": 0.0, "w_acc": 0.0},
-    "no_clipping": {"clipping": False},
-    "no_decay": {"decay": 1.0},
-    "no_multiseg": {"multiseg": False},
+    "no_clipping": {"render.clipping": False},
+    "no_decay": {"data.decay": 1.0},
+    "no_multiseg": {"data.segments": [[0, 1000]]},
 }
 
 
@@ -56,11 +57,13 @@ def test_sizing_applies_only_to_its_trainer_and_model():
 
 @pytest.mark.parametrize("preset", sorted(EXPECTED))
 def test_loss_preset_switches_exactly_its_terms(preset: str):
-    full = OmegaConf.to_container(_compose().loss)
-    mine = OmegaConf.to_container(_compose(f"loss={preset}").loss)
-    changed = {k: mine[k] for k in TERMS + SWITCHES if mine[k] != full[k]}
+    full = OmegaConf.to_container(_compose(), resolve=True)
+    mine = OmegaConf.to_container(_compose(f"loss={preset}"), resolve=True)
+    changed = {k: mine["loss"][k] for k in TERMS if mine["loss"][k] != full["loss"][k]}
+    changed |= {f"{g}.{k}": mine[g][k] for g, k in SWITCHES if mine[g][k] != full[g][k]}
     assert changed == EXPECTED[preset]
-    assert mine["name"] == preset
+    assert mine["loss"]["name"] == preset
+    assert set(mine["loss"]) == set(full["loss"])  # the loss group holds only loss weights
 
 
 def test_every_loss_file_is_tested():
@@ -70,7 +73,7 @@ def test_every_loss_file_is_tested():
 
 def test_paper_trainer_preset_has_paper_values():
     cfg = _compose("trainer=paper")
-    assert (cfg.trainer.n_rays, cfg.trainer.n_coarse, cfg.trainer.n_fine) == (1024, 64, 128)
+    assert (cfg.trainer.n_rays, cfg.render.n_coarse, cfg.render.n_fine) == (1024, 64, 128)
     assert cfg.trainer.max_steps == 150000
     # the paper's network, optimiser and schedules (method.md)
     m = cfg.model
@@ -117,7 +120,7 @@ def test_sweep_launchers_compose(launcher: str, target: str):
 def test_ddp_trainer_preset():
     cfg = _compose("trainer=ddp")
     assert cfg.trainer.lightning.strategy == "ddp" and cfg.trainer.lightning.devices == -1
-    assert (cfg.trainer.n_rays, cfg.trainer.n_coarse, cfg.trainer.n_fine) == (1024, 64, 128)
+    assert (cfg.trainer.n_rays, cfg.render.n_coarse, cfg.render.n_fine) == (1024, 64, 128)
 
 
 def test_davis_size_is_one_override_for_every_scene():

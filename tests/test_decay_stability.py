@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 import torch
 
-from eventrecon.data.types import EventStream
 from eventrecon.events.accumulate import DecayedEvents
 from eventrecon.events.noise_theory import (
     eq15_supplementary,
@@ -24,6 +23,7 @@ from eventrecon.events.noise_theory import (
     noise_moments,
     simulate_noise_accumulation,
 )
+from eventrecon.events.stream import EventStream
 
 P = 20000  # Monte-Carlo pixels
 

@@ -11,7 +11,8 @@ import pytest
 from integration import tiny_config
 from omegaconf import OmegaConf
 
-from eventrecon import runner
+from eventrecon import build, runner
+from eventrecon.data import selection
 from eventrecon.evaluate import main
 
 
@@ -43,15 +44,15 @@ def test_background_only_score_is_what_an_empty_field_renders(run_dir: Path):
     import numpy as np
     import torch
 
-    from eventrecon.data.types import srgb_to_linear
+    from eventrecon.colour import srgb_to_linear
     from eventrecon.evaluate import evaluate_heldout, render_heldout
     from eventrecon.fields.base import Field
     from eventrecon.segments import resolve_segments
 
     cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
-    ds = runner.load_dataset(cfg)
-    heldout, props = runner.heldout_split(ds), runner.scene_properties(cfg, ds)
-    field, renderer = runner.load_segment(cfg, props, run_dir / "seg0")
+    ds = build.load_dataset(cfg)
+    heldout, props = selection.heldout_split(ds), build.scene_properties(cfg, ds)
+    field, renderer = build.load_segment(cfg, props, run_dir / "seg0")
 
     class Empty(Field):  # sigma = 0 everywhere
         def __init__(self):
@@ -62,7 +63,7 @@ def test_background_only_score_is_what_an_empty_field_renders(run_dir: Path):
             return xyz[:, 0] * 0 * self.w, xyz * 0 + 0.5
 
     frames = list(range(len(heldout.frame_times)))
-    segments = resolve_segments(None, False)
+    segments = resolve_segments(None)
     empty = render_heldout([(Empty(), renderer)], segments, heldout, [0], frames)
     got = evaluate_heldout(empty, heldout, [0], frames, lpips=False)
     assert got["psnr"] == pytest.approx(got["psnr_background"], abs=1e-9)

@@ -15,9 +15,12 @@ import numpy as np
 import pytest
 import torch
 
-from eventrecon.data.layout import read_dataset, read_split, view_key
+from eventrecon import build
+from eventrecon.data.layout import read_dataset, read_split
+from eventrecon.data.views import view_key
 from eventrecon.errors import InputError
-from eventrecon.render.cameras import distort, load_camdict
+from eventrecon.render.cameras import load_camdict
+from eventrecon.render.distortion import distort
 
 H, W, V = 20, 30, 3
 FRAME_TIMES = (0, 200, 1000)
@@ -272,7 +275,7 @@ def test_independent_dataset_trains(scene, tmp_path: Path):
     assert metrics["views"] == V and metrics["segments"] == [[0.0, 210.0], [190.0, 410.0],
                                                              [390.0, 610.0], [590.0, 810.0],
                                                              [790.0, 1000.0]]
-    props = runner.scene_properties(cfg, read_dataset(root))
+    props = build.scene_properties(cfg, read_dataset(root))
     # meta.json's eps and decay are overridden by data=real's, and Bayer comes from it
     assert (props.tonemap_eps, props.decay, props.bayer) == (0.03, 0.93, True)
 
@@ -291,7 +294,7 @@ def test_dataset_without_meta_needs_its_properties(scene, tmp_path: Path):
         runner.run(cfg, tmp_path / "run")
     cfg = tiny_config(tmp_path, f"data.root={root}", "data.tonemap_eps=0.05",
                       "data.decay=1.0", "data.bayer=false")
-    props = runner.scene_properties(cfg, read_dataset(root))
+    props = build.scene_properties(cfg, read_dataset(root))
     assert (props.tonemap_eps, props.decay, props.bayer, props.segments) == (0.05, 1.0, False,
                                                                             None)
 
@@ -314,7 +317,7 @@ def test_training_split_without_events_or_frames_is_one_line(scene, tmp_path: Pa
 
 def test_groundtruth_split_is_the_one_evaluated(scene, tmp_path: Path):
     """Published synthetic scenes carry sharp held-out renders in groundtruth/."""
-    from eventrecon.runner import heldout_split
+    from eventrecon.data.selection import heldout_split
 
     root, _ = scene
     assert heldout_split(read_dataset(root)).root == root / "validation"

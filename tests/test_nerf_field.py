@@ -114,7 +114,7 @@ def test_nerf_field_architecture_and_parameter_count() -> None:
 
 
 def test_config_instantiates_the_field_and_carries_the_optimiser() -> None:
-    from eventrecon.runner import build_field
+    from eventrecon.build import build_field
 
     cfg = OmegaConf.load(CONF)
     assert open(CONF).readline().startswith("# python train.py model=nerf")

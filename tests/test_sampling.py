@@ -15,9 +15,9 @@ from eventrecon.data.sampling import (
     sample_pixels,
     sample_window,
 )
-from eventrecon.data.types import EventStream
 from eventrecon.errors import InputError
 from eventrecon.events.accumulate import DecayedEvents
+from eventrecon.events.stream import EventStream
 
 
 def test_window_bounds_and_moments() -> None:

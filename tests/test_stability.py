@@ -26,7 +26,7 @@ from integration import TINY, TINY_NERF, tiny_config
 from torch.utils._python_dispatch import TorchDispatchMode
 
 import eventrecon.module as module_lib
-from eventrecon import runner
+from eventrecon import build, runner
 from eventrecon.losses import total_loss
 from eventrecon.module import EventNeRFModule, NonFiniteLossError, step_generator
 from eventrecon.segments import resolve_segments
@@ -62,11 +62,11 @@ class _Bf16Ops(TorchDispatchMode):
 
 def _module(data_dir: Path, model: str) -> EventNeRFModule:
     cfg = tiny_config(data_dir, f"model={model}", *BACKBONES[model], base=TINY)
-    ds = runner.load_dataset(cfg)
-    props = runner.scene_properties(cfg, ds)
-    seg = resolve_segments(props.segments, None)[0]
+    ds = build.load_dataset(cfg)
+    props = build.scene_properties(cfg, ds)
+    seg = resolve_segments(props.segments)[0]
     torch.manual_seed(0)
-    return runner.build_module(cfg, props, ds.splits["train"], seg)
+    return build.build_module(cfg, props, ds.splits["train"], seg)
 
 
 def _step(mod: EventNeRFModule, batch: dict, bf16: bool) -> tuple[torch.Tensor, torch.Tensor, set]:

@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 from integration import tiny_config
 
-from eventrecon import runner
+from eventrecon import build, runner
 from eventrecon.sim.pipeline import ensure_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -104,10 +104,10 @@ def test_planned_identity_matches_the_finished_run(data_dir: Path, tmp_path: Pat
     """What a failure record says (``planned_run_info``) = what ``run`` would have written."""
     cfg = tiny_config(data_dir, "trainer.max_steps=2", "evaluate=false")
     metrics = runner.run(cfg, tmp_path / "run")
-    planned = runner.planned_run_info(cfg)
+    planned = build.planned_run_info(cfg)
     assert {k: planned[k] for k in IDENTITY} == {k: metrics[k] for k in IDENTITY}
     assert planned["views"] == 6 and planned["fps"] == 5.0
     # no dataset on disk yet (the job failed before simulating): the scene config's values
-    fresh = runner.planned_run_info(tiny_config(tmp_path / "empty"))
+    fresh = build.planned_run_info(tiny_config(tmp_path / "empty"))
     assert {k: fresh[k] for k in IDENTITY} == {k: metrics[k] for k in IDENTITY}
     assert not (tmp_path / "empty").exists()

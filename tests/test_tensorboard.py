@@ -12,7 +12,7 @@ import torch
 import yaml
 from integration import tiny_config
 
-from eventrecon import runner
+from eventrecon import build, runner
 from eventrecon.callbacks import HeldOutMonitor
 from eventrecon.data.batcher import Segment
 from eventrecon.losses import log_intensity
@@ -55,10 +55,10 @@ def test_scalars_images_and_hyperparameters(run_dir: Path):
 
 def test_event_image_is_the_measured_and_the_rendered_log_change(tmp_path: Path):
     cfg = tiny_config(tmp_path / "data")
-    ds = runner.load_dataset(cfg)
-    props = runner.scene_properties(cfg, ds)
+    ds = build.load_dataset(cfg)
+    props = build.scene_properties(cfg, ds)
     seg = Segment(0.0, 1000.0)
-    module = runner.build_module(cfg, props, ds.splits["train"], seg)
+    module = build.build_module(cfg, props, ds.splits["train"], seg)
     module.last_window = (0.2, 0.7)
     monitor = HeldOutMonitor(ds.splits["validation"], seg, tmp_path, 0, 0, 0, 64, 4096)
     img = monitor._event_image(module)

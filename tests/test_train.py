@@ -13,11 +13,14 @@ import pytest
 import torch
 from integration import tiny_config
 
-from eventrecon import runner
+from eventrecon import build, runner
+from eventrecon.data import selection
 from eventrecon.data.batcher import Segment
 from eventrecon.errors import InputError
 from eventrecon.losses import total_loss
 from eventrecon.module import step_generator
+from eventrecon.records import stitch_curves
+from eventrecon.segments import segment_config, segment_steps
 
 
 @pytest.fixture(scope="module")
@@ -45,10 +48,10 @@ def test_200_steps_lower_the_loss_and_beat_a_constant_colour(data_dir: Path, tmp
                       "trainer.checkpoint_every=100")
     metrics = runner.run(cfg, tmp_path)
     # the loss before training, with the same initial field (same seed as the run)
-    ds = runner.load_dataset(cfg)
+    ds = build.load_dataset(cfg)
     train = ds.splits["train"]
     L.seed_everything(cfg.seed, verbose=False)
-    fresh = runner.build_module(cfg, runner.scene_properties(cfg, ds), train, Segment(0, 1000))
+    fresh = build.build_module(cfg, build.scene_properties(cfg, ds), train, Segment(0, 1000))
     trained_sd = torch.load(tmp_path / "seg0" / "checkpoints" / "last.ckpt",
                             weights_only=False)["state_dict"]
     before = _fixed_batch_loss(fresh)
@@ -71,8 +74,8 @@ def test_200_steps_lower_the_loss_and_beat_a_constant_colour(data_dir: Path, tmp
 
 def test_one_parameter_set_for_coarse_and_fine(data_dir: Path, tmp_path: Path):
     cfg = tiny_config(data_dir, "trainer.max_steps=1")
-    ds = runner.load_dataset(cfg)
-    m = runner.build_module(cfg, runner.scene_properties(cfg, ds), ds.splits["train"],
+    ds = build.load_dataset(cfg)
+    m = build.build_module(cfg, build.scene_properties(cfg, ds), ds.splits["train"],
                             Segment(0, 1000))
     field = m.field
     assert sum(p.numel() for p in m.renderer.parameters()) == 0
@@ -120,43 +123,43 @@ def test_segments_trained_by_separate_jobs_equal_one_run(data_dir: Path, tmp_pat
 
 def test_views_and_fps_selection(data_dir: Path):
     cfg = tiny_config(data_dir)
-    ds = runner.load_dataset(cfg)
+    ds = build.load_dataset(cfg)
     train = ds.splits["train"]
-    three = runner.select_views(train, 3)
+    three = selection.select_views(train, 3)
     assert three.cameras.names == [train.cameras.names[i] for i in (0, 2, 4)]
     assert len(three.events) == 3 and three.frames.shape[1] == 3
-    one = runner.select_fps(train, 0.5, float(ds.meta["duration_s"]))
+    one = selection.select_fps(train, 0.5, float(ds.meta["duration_s"]))
     assert one.frame_times.tolist() == [0.0]
     from eventrecon.errors import InputError
     with pytest.raises(InputError, match="data.fps"):
-        runner.select_fps(train, 1000.0, float(ds.meta["duration_s"]))
+        selection.select_fps(train, 1000.0, float(ds.meta["duration_s"]))
     with pytest.raises(InputError, match="data.views"):
-        runner.select_views(train, 7)
+        selection.select_views(train, 7)
 
 
 def test_select_fps_tolerates_rounded_frame_names_and_one_frame(data_dir: Path):
     from dataclasses import replace
 
-    train = runner.load_dataset(tiny_config(data_dir)).splits["train"]
+    train = build.load_dataset(tiny_config(data_dir)).splits["train"]
     # frame folders named to 1e-4 units: a 3.7 s clip at 5 FPS (step 54.054...)
     times = np.round(np.arange(len(train.frame_times)) * 1000 / 18.5, 4)
     odd = replace(train, frame_times=times)
-    assert len(runner.select_fps(odd, 5.0, 3.7).frame_times) == len(times)  # all kept
+    assert len(selection.select_fps(odd, 5.0, 3.7).frame_times) == len(times)  # all kept
     one = replace(train, frame_times=times[:1], frames=train.frames[:1])
-    assert runner.select_fps(one, 100.0, 3.7).frame_times.tolist() == [0.0]
+    assert selection.select_fps(one, 100.0, 3.7).frame_times.tolist() == [0.0]
 
 
 def test_schedules_follow_each_segments_own_length(data_dir: Path):
     cfg = tiny_config(data_dir, "trainer.max_steps=1000", "trainer.split_steps=true",
                       "model.anneal_steps=${of_run:0.1}", "loss.sparsity_ramp=${of_run:0.2}")
-    steps = runner.segment_steps(cfg, 5)
-    seg = runner.segment_config(cfg, steps)
+    steps = segment_steps(cfg, 5)
+    seg = segment_config(cfg, steps)
     assert steps == 200 and seg.trainer.max_steps == 200 and not seg.trainer.split_steps
     assert (seg.model.anneal_steps, seg.loss.sparsity_ramp) == (20, 40)  # of 200, not 1000
-    assert runner.segment_config(tiny_config(data_dir), 10) is not None
+    assert segment_config(tiny_config(data_dir), 10) is not None
 
 
-def test_merge_curves_makes_steps_and_wall_clock_cumulative(tmp_path: Path):
+def test_stitched_curves_make_steps_and_wall_clock_cumulative(tmp_path: Path):
     for k, (rows, steps, wall) in enumerate([([(1.0, 5), (2.0, 10)], 10, 2.5),
                                              ([(0.5, 5), (3.0, 10)], 10, 3.0)]):
         d = tmp_path / f"seg{k}"
@@ -164,10 +167,15 @@ def test_merge_curves_makes_steps_and_wall_clock_cumulative(tmp_path: Path):
         (d / "curve.csv").write_text("wall_s,step,psnr,ssim,lpips,kind\n" + "".join(
             f"{w},{s},20,,,cheap\n" for w, s in rows))
         (d / "done.json").write_text(json.dumps({"steps": steps, "wall_s": wall}))
-    runner.merge_curves([tmp_path / "seg0", tmp_path / "seg1"], tmp_path / "curve.csv")
-    lines = (tmp_path / "curve.csv").read_text().splitlines()[1:]
-    assert [tuple(ln.split(",")[:2]) for ln in lines] == [
+    rows = stitch_curves([tmp_path / "seg0", tmp_path / "seg1"])
+    assert [(r["wall_s"], r["step"]) for r in rows] == [
         ("1.000", "5"), ("2.000", "10"), ("3.000", "15"), ("5.500", "20")]
+    # the report reads a run without a top-level curve.csv the same way
+    from eventrecon.report.runs import read_curve
+
+    cols = read_curve(tmp_path)
+    assert cols["step"].tolist() == [5, 10, 15, 20]
+    assert cols["wall_s"].tolist() == [1.0, 2.0, 3.0, 5.5]
 
 
 def test_one_checkpoint_cannot_resume_several_segments(data_dir: Path, tmp_path: Path):

@@ -8,7 +8,8 @@ from pathlib import Path
 import pytest
 from integration import TINY, tiny_config
 
-from eventrecon import runner
+from eventrecon import build, runner
+from eventrecon.segments import resolve_segments
 
 SMALL = {
     "ngp": ["model.log2_table_size=14"],
@@ -41,10 +42,10 @@ def test_ngp_cylinder_annealing_reaches_full_radius_with_finite_losses(data_dir:
     from eventrecon.module import step_generator
 
     cfg = tiny_config(data_dir, "model=ngp", "trainer.max_steps=24", *SMALL["ngp"], base=TINY)
-    ds = runner.load_dataset(cfg)
-    module, _ = runner.train_segment(cfg, runner.scene_properties(cfg, ds), ds.splits["train"],
+    ds = build.load_dataset(cfg)
+    module, _ = runner.train_segment(cfg, build.scene_properties(cfg, ds), ds.splits["train"],
                                      None, 0,
-                                     runner.resolve_segments(None, None)[0], tmp_path)
+                                     resolve_segments(None)[0], tmp_path)
     assert module.nonfinite_total == 0
     assert module.renderer.clip_scale == pytest.approx(1.0)
     # the schedule: 0 at the start, linear over the first third of training

@@ -15,15 +15,14 @@ Under DDP every rank evaluates (the checkpoint it may save is a collective call)
 only rank 0 writes ``curve.csv``; loggers are rank-0 only by themselves.
 
 Wall-clock is the training time only: time spent inside this callback is subtracted,
-so curves of different backbones compare training cost. Rows go to ``curve.csv``
-(``wall_s,step,psnr,ssim,lpips,kind``); a full evaluation that improves PSNR saves
-``checkpoints/best.ckpt``.
+so curves of different backbones compare training cost. Rows go to the segment's
+``curve.csv`` (:class:`eventrecon.records.CurveLog`); renders are scored as the final
+evaluation scores them (:func:`eventrecon.evaluate.score_images`); a full evaluation
+that improves PSNR saves ``checkpoints/best.ckpt``.
 """
 
 from __future__ import annotations
 
-import csv
-import io
 import logging
 import math
 import time
@@ -35,7 +34,9 @@ import numpy as np
 import torch
 
 from eventrecon.data.batcher import Segment, background_linear
-from eventrecon.data.types import SplitData, linear_to_srgb, srgb_to_linear
+from eventrecon.data.types import SplitData
+from eventrecon.evaluate import cheap_psnr, encode, score_images
+from eventrecon.records import CURVE_FILE, CurveLog
 
 __all__ = ["HeldOutMonitor"]
 
@@ -76,24 +77,14 @@ class HeldOutMonitor(L.Callback):
         self.wall = 0.0  # this segment's training seconds (restored on resume)
         self._t_last: float | None = None
         self._full_at: int | None = None  # the step of the last full evaluation
-        self.curve_path = self.out_dir / "curve.csv"
+        self.curve = CurveLog(self.out_dir / CURVE_FILE)
 
     # -------------------------------------------------------------- wall clock
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         """On resume, forget curve rows written after the checkpoint being resumed (the
         replayed steps log them again); rank 0 only, written atomically."""
-        if not trainer.is_global_zero or not self.curve_path.exists():
-            return
-        step = int(trainer.global_step)
-        with self.curve_path.open(newline="") as f:
-            rows = list(csv.reader(f))
-        kept = rows[:1] + [r for r in rows[1:] if r and int(r[1]) <= step]
-        if len(kept) != len(rows):
-            from eventrecon.checkpointing import atomic_write_bytes
-
-            buf = io.StringIO()
-            csv.writer(buf).writerows(kept)
-            atomic_write_bytes(self.curve_path, buf.getvalue().encode())
+        if trainer.is_global_zero:
+            self.curve.truncate_after(int(trainer.global_step))
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule,
                              batch: Any, batch_idx: int) -> None:
@@ -134,7 +125,7 @@ class HeldOutMonitor(L.Callback):
             t = float(self.segment.normalise(float(self.split.frame_times[f])))
             t = min(1.0, max(0.0, t))
             for v in range(len(cams)):
-                gt = srgb_to_linear(self.split.frames[f, v])
+                gt = self.split.frames[f, v]
                 if full:
                     res = renderer.render_image(field, cams, v, t, self.bg[v].to(device),
                                                 chunk=self.chunk)
@@ -145,16 +136,13 @@ class HeldOutMonitor(L.Callback):
                     preds.append(self._render_pixels(field, renderer, v, t, device))
                     gts.append(gt.reshape(-1, 3)[self.pix.numpy()])
         field.train(was_training)
-        enc = [linear_to_srgb(p).astype(np.float32) / 255 for p in preds]
-        gts_enc = [linear_to_srgb(g).astype(np.float32) / 255 for g in gts]
         if full:
-            from eventrecon.metrics import evaluate_images
-            m = evaluate_images(enc, gts_enc, lpips=True)
+            m = score_images(preds, gts, lpips=True)
             row = {"psnr": m["psnr"], "ssim": m["ssim"], "lpips": m.get("lpips")}
-            self._log_images(trainer, pl_module, enc[0], gts_enc[0], extras[0], step)
+            self._log_images(trainer, pl_module, encode(preds[0]),
+                             gts[0].astype(np.float32) / 255, extras[0], step)
         else:
-            mse = float(np.mean([np.mean((p - g) ** 2) for p, g in zip(enc, gts_enc)]))
-            row = {"psnr": -10 * math.log10(max(mse, 1e-12)), "ssim": None, "lpips": None}
+            row = {"psnr": cheap_psnr(preds, gts), "ssim": None, "lpips": None}
         kind = "full" if full else "cheap"
         if full:
             self._full_at = step
@@ -180,18 +168,8 @@ class HeldOutMonitor(L.Callback):
         return levels[-1]["rgb"].clamp(0, 1).cpu().numpy()
 
     def _append_curve(self, step: int, row: dict, kind: str, trainer: L.Trainer) -> None:
-        if not trainer.is_global_zero:
-            return
-        new = not self.curve_path.exists()
-        self.curve_path.parent.mkdir(parents=True, exist_ok=True)
-        with self.curve_path.open("a", newline="") as f:
-            w = csv.writer(f)
-            if new:
-                w.writerow(["wall_s", "step", "psnr", "ssim", "lpips", "kind"])
-            w.writerow([f"{self.wall:.3f}", step] +
-                       ["" if row[k] is None else f"{row[k]:.5f}"
-                        for k in ("psnr", "ssim", "lpips")]
-                       + [kind])
+        if trainer.is_global_zero:
+            self.curve.append(self.wall, step, row, kind)
 
     def _log_images(self, trainer: L.Trainer, pl_module: Any, pred: np.ndarray, gt: np.ndarray,
                     res: dict, step: int) -> None:

@@ -13,20 +13,33 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
+from omegaconf import DictConfig, OmegaConf
 
+from eventrecon.build import load_dataset, load_segment, scene_properties
+from eventrecon.checkpointing import atomic_write_json
+from eventrecon.colour import linear_to_srgb
 from eventrecon.data.batcher import Segment, background_linear
-from eventrecon.data.types import SplitData, linear_to_srgb
+from eventrecon.data.properties import SceneProperties
+from eventrecon.data.selection import heldout_split
+from eventrecon.data.types import SplitData
+from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
+from eventrecon.metrics import evaluate_images, psnr
+from eventrecon.records import run_info
 from eventrecon.render.volume import Renderer
-from eventrecon.segments import crossfade_weights
+from eventrecon.segments import crossfade_weights, resolve_segments
 
-__all__ = ["render_heldout", "evaluate_heldout", "write_renders", "main"]
+__all__ = ["render_heldout", "encode", "score_images", "cheap_psnr", "evaluate_heldout",
+           "write_renders", "render_and_score", "evaluate_models", "evaluate_run",
+           "run_device", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -60,26 +73,47 @@ def render_heldout(models: Sequence[tuple[Field, Renderer]], segments: Sequence[
     return out
 
 
+def encode(linear: np.ndarray) -> np.ndarray:
+    """Linear radiance → the 8-bit encoding of the saved renders, as float32 in [0, 1]
+    (what is scored: the published ground truth is compared as stored)."""
+    return linear_to_srgb(linear).astype(np.float32) / 255.0
+
+
+def score_images(preds_lin: Sequence[np.ndarray], gts_u8: Sequence[np.ndarray],
+                 lpips: bool = True, color_correct: bool = False) -> dict:
+    """PSNR / SSIM / LPIPS of linear renders ``[H, W, 3]`` against stored frames
+    (:func:`eventrecon.metrics.evaluate_images` on the encoded images)."""
+    return evaluate_images([encode(p) for p in preds_lin],
+                           [g.astype(np.float32) / 255.0 for g in gts_u8],
+                           lpips=lpips, color_correct=color_correct)
+
+
+def cheap_psnr(preds_lin: Sequence[np.ndarray], gts_u8: Sequence[np.ndarray]) -> float:
+    """``−10 log10`` of the mean squared error over every given pixel (any shapes, each
+    render against its stored ground truth): the cheap point of the training curve."""
+    mse = float(np.mean([np.mean((encode(p) - g.astype(np.float32) / 255.0) ** 2)
+                         for p, g in zip(preds_lin, gts_u8)]))
+    return -10.0 * math.log10(max(mse, 1e-12))
+
+
 def evaluate_heldout(renders_lin: np.ndarray, split: SplitData, views: Sequence[int],
                      frame_idx: Sequence[int], lpips: bool = True,
                      color_correct: bool = False) -> dict:
-    """PSNR / SSIM / LPIPS of sRGB-encoded renders against the ground-truth PNGs.
+    """PSNR / SSIM / LPIPS of the renders ``[F, V, H, W, 3]`` against the ground-truth PNGs.
 
     Also ``psnr_background``: the PSNR of the background alone (what a field with zero
     density everywhere renders) on the same frames. A run whose PSNR is close to it has
     learnt little of the scene; a low-contrast scene can score high with nothing in it.
     """
-    from eventrecon.metrics import evaluate_images, psnr
-
-    bg = linear_to_srgb(background_linear(split).clamp(0, 1).numpy()).astype(np.float32) / 255.0
+    bg = encode(background_linear(split).clamp(0, 1).numpy())
     preds, gts, empty = [], [], []
     for a, f in enumerate(frame_idx):
         for b, v in enumerate(views):
-            preds.append(linear_to_srgb(renders_lin[a, b]).astype(np.float32) / 255.0)
-            gts.append(split.frames[f, v].astype(np.float32) / 255.0)
+            preds.append(renders_lin[a, b])
+            gts.append(split.frames[f, v])
             empty.append(bg[v])
-    result = evaluate_images(preds, gts, lpips=lpips, color_correct=color_correct)
-    result["psnr_background"] = psnr(np.stack(empty), np.stack(gts))
+    result = score_images(preds, gts, lpips=lpips, color_correct=color_correct)
+    result["psnr_background"] = psnr(np.stack(empty), np.stack(gts).astype(np.float32) / 255.0)
     return result
 
 
@@ -104,14 +138,80 @@ def write_renders(renders_lin: np.ndarray, split: SplitData, views: Sequence[int
     return written
 
 
+def render_and_score(models: list[tuple[Field, Renderer]], segments: list[Segment],
+                     heldout: SplitData, views: list[int], frames: list[int], out_dir: Path,
+                     chunk: int, color_correct: bool = False) -> dict[str, Any]:
+    """Render the held-out ``views`` at ``frames`` (cross-fading segments), write the PNGs
+    and GIFs below ``out_dir`` and return PSNR / SSIM / LPIPS (and ``psnr_background``)."""
+    renders = render_heldout(models, segments, heldout, views, frames, chunk=chunk)
+    write_renders(renders, heldout, views, frames, out_dir)
+    return evaluate_heldout(renders, heldout, views, frames, color_correct=color_correct)
+
+
+def run_device(cfg: DictConfig) -> torch.device:
+    """Where the run trains and evaluates: its GPU when the trainer asks for one."""
+    gpu = str(cfg.trainer.lightning.accelerator) in ("gpu", "cuda", "auto")
+    return torch.device("cuda" if gpu and torch.cuda.is_available() else "cpu")
+
+
+def evaluate_models(cfg: DictConfig, props: SceneProperties, heldout: SplitData,
+                    segments: list[Segment], trained: dict[int, tuple[Field, Renderer]],
+                    out_dir: Path, device: torch.device) -> dict[str, Any]:
+    """Score a run's held-out views on ``device`` as configured (``data.eval_views``,
+    ``data.eval_every_frames``); segments not in ``trained`` are loaded from their
+    ``last.ckpt``."""
+    models = []
+    for k in range(len(segments)):
+        field, renderer = (trained[k] if k in trained
+                           else load_segment(cfg, props, out_dir / f"seg{k}"))
+        models.append((field.to(device).eval(), renderer))
+    views = (list(range(heldout.n_views)) if cfg.data.eval_views is None
+             else list(cfg.data.eval_views))
+    frames = list(range(0, len(heldout.frame_times), int(cfg.data.eval_every_frames)))
+    return render_and_score(models, segments, heldout, views, frames, out_dir,
+                            cfg.render.chunk)
+
+
+def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False) -> dict:
+    """Re-evaluate a finished or interrupted run from its saved config and checkpoints.
+
+    Every held-out view at every ground-truth time (the paper's protocol; the run's own
+    ``metrics.json`` may have used a subset, ``data.eval_every_frames``).
+    ``ckpt="last"`` (default) scores the final weights; ``"best"`` the checkpoint that
+    scored best on the held-out views during training (a choice made on the test data
+    itself, so not an unbiased score). Renders go to ``eval_<ckpt>/renders/``; the
+    metrics to ``metrics_eval.json`` (``metrics_eval_cc.json`` with colour correction)
+    beside the run's ``metrics.json``.
+    """
+    run_dir = Path(run_dir)
+    cfg_path = run_dir / ".hydra" / "config.yaml"
+    if not cfg_path.exists():
+        raise InputError(cfg_path, "<file>", "the run's saved Hydra config")
+    cfg = OmegaConf.load(cfg_path)
+    ds = load_dataset(cfg)
+    props = scene_properties(cfg, ds)
+    heldout = heldout_split(ds)
+    if heldout is None:
+        raise InputError(ds.root, "validation/ or groundtruth/", "a held-out split to evaluate")
+    segments = resolve_segments(props.segments)
+    device = run_device(cfg)
+    models = [(field.to(device), renderer) for field, renderer in
+              (load_segment(cfg, props, run_dir / f"seg{k}", ckpt) for k in range(len(segments)))]
+    views = list(range(heldout.n_views))
+    frames = list(range(len(heldout.frame_times)))
+    metrics = {**run_info(cfg, ds.meta), "checkpoint": ckpt,
+               **render_and_score(models, segments, heldout, views, frames,
+                                  run_dir / f"eval_{ckpt}", cfg.render.chunk, color_correct)}
+    name = "metrics_eval.json" if not color_correct else "metrics_eval_cc.json"
+    atomic_write_json(run_dir / name, metrics)
+    return metrics
+
+
 USAGE = "usage: python -m eventrecon.evaluate run=DIR [ckpt=last|best] [color_correct=true]"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """CLI (see module docstring). Exit 0 done, 2 bad input (one line)."""
-    from eventrecon.errors import InputError
-    from eventrecon.runner import evaluate_run
-
     argv = list(argv if argv is not None else sys.argv[1:])
     known = {"run", "ckpt", "color_correct"}
     bad = [a for a in argv if "=" not in a or a.split("=", 1)[0] not in known]

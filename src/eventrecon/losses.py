@@ -1,4 +1,4 @@
-"""The four losses of the method, their weights and the sparsity ramp (method.md "Losses").
+"""The four losses of the method, their weights and the sparsity ramp (docs/method.md "Losses").
 
 Notation (per ray ``n`` and channel ``c``): ``Ĉ(t)`` the rendered *linear* colour,
 ``L(I) = log(I + ε)`` the log space of the events (ε = ``tonemap_eps``, the only guard
@@ -59,7 +59,7 @@ __all__ = [
 
 @dataclass
 class LossConfig:
-    """Weights and constants of the losses (defaults: method.md, synthetic data)."""
+    """Weights and constants of the losses (defaults: docs/method.md, synthetic data)."""
 
     w_event: float = 1.0
     """Weight of L_event (0 disables it: the "w/o L_event" ablation)."""

@@ -1,6 +1,6 @@
 """The LightningModule: one training step = sample a window, render, compute the losses.
 
-Per step (method.md "Per-iteration sampling"):
+Per step (docs/method.md "Per-iteration sampling"):
 
 1. ``batch = batcher.sample(n_rays, gen)`` with ``gen`` seeded by ``(seed, step, rank)`` —
    the batch is a pure function of the step, so a resumed run replays the same batches,
@@ -187,12 +187,9 @@ class EventNeRFModule(L.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         meta = checkpoint.get("eventrecon", {})
         mine = field_class_name(self.field)
-        if meta.get("field_class", mine) != mine:  # runner.check_checkpoint catches it first
+        if meta.get("field_class", mine) != mine:  # build.inspect_checkpoint catches it first
             where = getattr(self._trainer, "ckpt_path", None) or "checkpoint"
             raise InputError(where, "eventrecon.field_class",
                              f"a checkpoint of {mine} (this run's model)", meta["field_class"])
         self.renderer.clip_scale = meta.get("clip_scale", self.renderer.clip_scale)
         self.nonfinite_total = meta.get("nonfinite_total", 0)
-        prepare = getattr(self.field, "prepare_state_dict", None)
-        if prepare is not None:  # backbones whose tensors grow during training
-            prepare(checkpoint["state_dict"], prefix="field.")

@@ -8,15 +8,24 @@ Long sequences are split into overlapping segments, each with its own model, e.g
 .. math:: I(t) = (1 - w) I_k(t) + w I_{k+1}(t), \\quad w = (t - a) / (b - a),
 
 which is the authors' "decode ^2.2, linear ramp, re-encode" on saved frames.
+
+Every segment trains ``trainer.max_steps`` steps (the authors' multi-segment runs);
+``trainer.split_steps=true`` divides that budget over the segments instead (equal
+compute for any number of segments), and each segment's config has its own
+``max_steps`` so schedules written as fractions of the run fit the segment.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
+
+from omegaconf import DictConfig, OmegaConf
 
 from eventrecon.data.batcher import Segment
 
-__all__ = ["make_segments", "crossfade_weights", "resolve_segments"]
+__all__ = ["make_segments", "crossfade_weights", "resolve_segments", "segment_steps",
+           "segment_config"]
 
 
 def make_segments(n: int, overlap: float = 20.0, span: float = 1000.0) -> list[Segment]:
@@ -32,16 +41,18 @@ def make_segments(n: int, overlap: float = 20.0, span: float = 1000.0) -> list[S
     return [Segment(max(0.0, edges[k] - half), min(span, edges[k + 1] + half)) for k in range(n)]
 
 
-def resolve_segments(meta_segments: Sequence[Sequence[float]] | None, multiseg: bool | None,
+def resolve_segments(segments: Sequence[Sequence[float]] | None,
                      span: float = 1000.0) -> list[Segment]:
-    """The segments a run trains: the dataset's, or one whole-span segment.
+    """The segments a run trains (``[[t0, t1], ...]`` time units, sorted by start), or
+    one segment ``[0, span]`` when there are none. The "w/o multi-segment" ablation sets
+    ``data.segments: [[0, 1000]]``.
 
-    ``multiseg=False`` (the "w/o multi-segment" ablation) forces ``[0, span]``;
-    ``None`` uses the dataset's own list (one segment if it has none).
+    >>> resolve_segments([[190, 410], [0, 210]])
+    [Segment(start=0.0, end=210.0), Segment(start=190.0, end=410.0)]
     """
-    if multiseg is False or not meta_segments:
+    if not segments:
         return [Segment(0.0, span)]
-    segs = [Segment(float(a), float(b)) for a, b in meta_segments]
+    segs = [Segment(float(a), float(b)) for a, b in segments]
     for s in segs:
         if not s.end > s.start:
             raise ValueError(f"meta.json: segments: expected start < end, got [{s.start}, {s.end}]")
@@ -67,3 +78,22 @@ def crossfade_weights(segments: Sequence[Segment], t: float) -> list[tuple[int, 
     lo, hi = segments[b].start, segments[a].end
     w = 0.5 if hi <= lo else min(1.0, max(0.0, (t - lo) / (hi - lo)))
     return [(a, 1.0 - w), (b, w)]
+
+
+def segment_steps(cfg: DictConfig, n_segments: int) -> int:
+    """Optimiser steps of each segment: ``trainer.max_steps``, or with
+    ``trainer.split_steps=true`` the run's budget ``ceil(max_steps / n_segments)``.
+
+    >>> segment_steps(OmegaConf.create({"trainer": {"max_steps": 1000, "split_steps": True}}), 3)
+    334
+    """
+    total = int(cfg.trainer.max_steps)
+    return math.ceil(total / n_segments) if cfg.trainer.get("split_steps") else total
+
+
+def segment_config(cfg: DictConfig, steps: int) -> DictConfig:
+    """``cfg`` with ``trainer.max_steps`` = the segment's own steps, so that schedules written
+    as fractions of the run (``${of_run:f}``) take the shape of the run each model trains."""
+    if int(cfg.trainer.max_steps) == steps and not cfg.trainer.get("split_steps"):
+        return cfg
+    return OmegaConf.merge(cfg, {"trainer": {"max_steps": steps, "split_steps": False}})

@@ -2,7 +2,7 @@
 
 Each call of :meth:`RayBatcher.sample` draws, with its own generator,
 
-1. a window ``(t0, t1)`` of the segment (normalised times, method.md "Per-iteration
+1. a window ``(t0, t1)`` of the segment (normalised times, docs/method.md "Per-iteration
    sampling"), shared by all views;
 2. ``n_rays`` pixels split equally over the training views, per view a fraction
    ``neg_ratio`` uniform over the image and the rest on pixels with ``E(t0, t1) ≠ 0``;
@@ -22,16 +22,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from eventrecon.colour import GREY_LINEAR, srgb_to_linear
 from eventrecon.data import sampling
-from eventrecon.data.types import SplitData, srgb_to_linear
+from eventrecon.data.types import SplitData
 from eventrecon.events.accumulate import DecayedEvents
 from eventrecon.events.bayer import bayer_mask_at
 from eventrecon.render.cameras import Cameras
 
-__all__ = ["RayBatcher", "Segment", "GREY_BACKGROUND_SRGB"]
-
-#: The constant background of the method when no background frame is given (sRGB 159/255).
-GREY_BACKGROUND_SRGB: int = 159
+__all__ = ["RayBatcher", "Segment", "background_linear"]
 
 
 @dataclass(frozen=True)
@@ -49,12 +47,12 @@ class Segment:
 
 
 def background_linear(split: SplitData) -> Tensor:
-    """``[V, H, W, 3]`` linear background: the split's frames, else constant grey."""
+    """``[V, H, W, 3]`` linear background: the split's frames, else the method's constant
+    grey (:data:`eventrecon.colour.GREY_LINEAR`)."""
     cams = split.cameras
     if split.background is not None:
         return torch.from_numpy(srgb_to_linear(split.background))
-    grey = float(srgb_to_linear(np.array([GREY_BACKGROUND_SRGB], np.uint8))[0])
-    return torch.full((len(cams), cams.height, cams.width, 3), grey)
+    return torch.full((len(cams), cams.height, cams.width, 3), GREY_LINEAR)
 
 
 class RayBatcher:

@@ -5,7 +5,7 @@ Each reader takes one path and returns plain NumPy arrays, or raises
 the expectation -- a malformed file never surfaces as a traceback from deep inside
 NumPy, zipfile or PIL.
 
-Files handled (method.md, "Data layout of the published dataset"):
+Files handled (docs/method.md, "Data layout of the published dataset"):
 
 - ``intrinsics/<view>.txt``: 5×5 (``K`` top-left 3×3, last row ``k1 k2 p1 p2 k3``),
   5×4 (last row ``k1 k2 p1 p2``), 4×4 or 3×3 (no distortion) -> :func:`read_intrinsics`;
@@ -26,8 +26,8 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from eventrecon import TIME_SPAN
-from eventrecon.data.types import EventStream
 from eventrecon.errors import InputError
+from eventrecon.events.stream import EventStream
 from eventrecon.render.cameras import RIGID_TOL, check_intrinsics, check_rigid
 
 __all__ = [

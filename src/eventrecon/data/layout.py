@@ -1,6 +1,6 @@
 """Reader of the published dataset layout (one scene = ``train``/``validation`` splits).
 
-Per split folder (method.md, "Data layout of the published dataset")::
+Per split folder (docs/method.md, "Data layout of the published dataset")::
 
     intrinsics/<view>.txt        5×5 (K + k1 k2 p1 p2 k3), 5×4, 4×4 (or 3×3)
     pose/<view>.txt              4×4 rigid camera-to-world, OpenCV axes
@@ -34,7 +34,6 @@ Every violation raises :class:`eventrecon.errors.InputError` naming file and fie
 from __future__ import annotations
 
 import logging
-import re
 from pathlib import Path
 
 import numpy as np
@@ -47,54 +46,20 @@ from eventrecon.data.files import (
     read_png,
     read_pose,
 )
-from eventrecon.data.types import Dataset, EventStream, SplitData
+from eventrecon.data.legacy import is_legacy_split
+from eventrecon.data.types import Dataset, SplitData
+from eventrecon.data.views import list_views, match_views
 from eventrecon.errors import InputError
+from eventrecon.events.stream import EventStream
 from eventrecon.render.cameras import Cameras, cameras_from_camdict
 
-__all__ = ["read_split", "read_dataset", "match_views", "view_key", "list_views", "SPLITS"]
+__all__ = ["read_split", "read_dataset", "SPLITS"]
 
 log = logging.getLogger(__name__)
 
 #: Splits read by :func:`read_dataset` (when present), in this order. ``groundtruth`` is
 #: the published synthetic scenes' folder of sharp held-out renders (same layout).
 SPLITS: tuple[str, ...] = ("train", "validation", "groundtruth")
-
-_TRAILING_INT = re.compile(r"(\d+)$")
-
-
-def view_key(stem: str) -> int | str:
-    """The key two view names are matched on: the trailing integer, else the stem.
-
-    >>> view_key("r_003"), view_key("3"), view_key("left")
-    (3, 3, 'left')
-    """
-    m = _TRAILING_INT.search(stem)
-    return int(m.group(1)) if m else stem
-
-
-def list_views(folder: Path, suffix: str) -> list[Path]:
-    """Files ``folder/*<suffix>`` sorted by name (hidden files ignored)."""
-    return sorted((f for f in folder.iterdir()
-                   if f.is_file() and f.suffix.lower() == suffix and not f.name.startswith(".")),
-                  key=lambda f: f.name)
-
-
-def match_views(reference: list[str], ref_where: Path | str, other: list[str],
-                other_where: Path | str) -> None:
-    """Check that ``other`` names the same views as ``reference`` in sorted order.
-
-    Raises:
-        InputError: different counts (``view count``) or a stem whose
-            :func:`view_key` differs from the reference's at the same position.
-    """
-    if len(other) != len(reference):
-        raise InputError(other_where, "view count",
-                         f"{len(reference)} views as in {ref_where}", len(other))
-    for a, b in zip(reference, other):
-        if view_key(a) != view_key(b):
-            raise InputError(other_where, "view names",
-                             f"the views of {ref_where} in sorted order ({a!r})", repr(b))
-
 
 def _read_cameras(split: Path, rigid_tol: float) -> tuple[Cameras, list[str], Path]:
     """Cameras (width/height 0 while unknown), view names and the folder/file they came from."""
@@ -245,8 +210,6 @@ def read_split(path: str | Path, *, binary_polarity: bool = False,
     split = Path(path)
     if not split.is_dir():
         raise InputError(split, "<folder>", "an existing split folder", "missing")
-    from eventrecon.data.legacy import is_legacy_split  # legacy imports this module
-
     if is_legacy_split(split):
         raise InputError(split, "<layout>", "the multi-view layout (one events npz per view)",
                          "the earlier single-camera EventNeRF layout; read it with "

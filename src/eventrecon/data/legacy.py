@@ -33,9 +33,9 @@ import torch
 
 from eventrecon import TIME_SPAN
 from eventrecon.data.files import RIGID_TOL, read_events_npz, read_intrinsics, read_png, read_pose
-from eventrecon.data.layout import list_views, match_views
-from eventrecon.data.types import EventStream
+from eventrecon.data.views import list_views, match_views
 from eventrecon.errors import InputError
+from eventrecon.events.stream import EventStream
 from eventrecon.render.cameras import Cameras
 
 __all__ = ["LegacySplit", "read_legacy_split", "is_legacy_split", "slerp_c2w"]

@@ -1,4 +1,4 @@
-"""Per-iteration random choices of the training batch (method.md "Per-iteration sampling").
+"""Per-iteration random choices of the training batch (docs/method.md "Per-iteration sampling").
 
 Pure functions of their inputs and an explicit :class:`torch.Generator` (no global RNG
 state), so a batch is a function of ``(seed, step)``. Draws happen on the generator's

@@ -31,8 +31,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from eventrecon.data.types import Dataset, EventStream, SplitData
+from eventrecon.data.types import Dataset, SplitData
 from eventrecon.errors import InputError
+from eventrecon.events.stream import EventStream
 from eventrecon.render.cameras import Cameras, cameras_to_camdict
 
 __all__ = ["write_split", "write_dataset", "write_npz", "write_matrix", "frame_folder"]

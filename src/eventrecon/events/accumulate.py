@@ -1,4 +1,4 @@
-"""Decayed prefix accumulation of events ("fast event accumulation", method.md).
+"""Decayed prefix accumulation of events ("fast event accumulation", docs/method.md).
 
 Per pixel, with its events in time order (ties at equal timestamps keep the order of
 the stream),
@@ -34,8 +34,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.data.types import EventStream
 from eventrecon.errors import InputError
+from eventrecon.events.stream import EventStream
 
 __all__ = ["DecayedEvents", "decayed_prefix"]
 
@@ -217,7 +217,7 @@ class DecayedEvents:
         """``E(t0, t1) = V(t1) − V(t0)`` of the given pixels (``[N]`` float64).
 
         With ``t0 > t1`` this is the negated window ``−E(t1, t0)``; in particular the
-        reference signal of method.md, ``E(t_ref, t1)`` negated when ``t_ref > t1``, is
+        reference signal of docs/method.md, ``E(t_ref, t1)`` negated when ``t_ref > t1``, is
         ``window(pix, t_ref, t1)`` for both orderings. ``t0 == t1`` gives exactly 0.
         """
         pix = self._check_pix(pix)

@@ -1,6 +1,6 @@
 """The RGGB Bayer pattern of colour event pixels (and of raw RGB frames).
 
-Channel seen by the pixel at ``(row, col)`` (method.md "Colour and log space"):
+Channel seen by the pixel at ``(row, col)`` (docs/method.md "Colour and log space"):
 
 ======== ============ ============
          even column  odd column

@@ -36,8 +36,10 @@ from torch import Tensor
 
 from eventrecon.errors import InputError
 
-__all__ = ["Cylinder", "PARALLEL_EPS"]
+__all__ = ["Cylinder", "PARALLEL_EPS", "NO_CLIPPING"]
 
+#: The "w/o clipping" ablation's cylinder: it covers the unit sphere's box.
+NO_CLIPPING: dict[str, float] = {"radius": 1.0, "y_min": -1.0, "y_max": 1.0}
 #: Squared-norm threshold below which a direction counts as parallel to an axis/plane.
 PARALLEL_EPS = 1e-12
 

@@ -32,20 +32,19 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor, nn
 
+from eventrecon.colour import GREY_LINEAR
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
-from eventrecon.render.clipping import Cylinder
+from eventrecon.render.clipping import NO_CLIPPING, Cylinder
 from eventrecon.render.samplers import interval_edges, sample_pdf, stratified
 
 if TYPE_CHECKING:
     from eventrecon.render.cameras import Cameras
 
-__all__ = ["TAU_MAX", "DEFAULT_BG", "render_weights", "composite", "Renderer"]
+__all__ = ["TAU_MAX", "render_weights", "composite", "Renderer"]
 
 #: Optical thickness clamp per step (``e^{-TAU_MAX}`` is 0 in float32).
 TAU_MAX = 1e4
-#: Constant background when no image is given: grey 159/255 in sRGB, linearised.
-DEFAULT_BG = (159.0 / 255.0) ** 2.2
 #: Slack (world units) when testing sample points against the cylinder.
 _INSIDE_TOL = 1e-5
 
@@ -128,6 +127,8 @@ class Renderer(nn.Module):
         radius, y_min, y_max: the clipping cylinder (:class:`Cylinder`).
         clip_scale: initial radius factor.
         chunk: rays per chunk in :meth:`render_image`.
+        clipping: ``False`` replaces the cylinder by :data:`~.clipping.NO_CLIPPING`
+            (``r = 1``, ``y ∈ [−1, 1]``: the "w/o clipping" ablation).
     """
 
     def __init__(
@@ -139,6 +140,7 @@ class Renderer(nn.Module):
         y_max: float = 0.25,
         clip_scale: float = 1.0,
         chunk: int = 8192,
+        clipping: bool = True,
     ) -> None:
         super().__init__()
         if n_coarse < 1:
@@ -148,7 +150,8 @@ class Renderer(nn.Module):
         if chunk < 1:
             raise InputError("renderer", "chunk", "an integer >= 1", chunk)
         self.n_coarse, self.n_fine, self.chunk = int(n_coarse), int(n_fine), int(chunk)
-        self.cylinder = Cylinder(radius, y_min, y_max)
+        self.cylinder = (Cylinder(radius, y_min, y_max) if clipping
+                         else Cylinder(**NO_CLIPPING))
         self.clip_scale = float(clip_scale)
 
     def extra_repr(self) -> str:
@@ -239,7 +242,7 @@ class Renderer(nn.Module):
             view: camera index.
             t: normalised time.
             bg_image: ``[H, W, 3]`` linear background, a ``[3]`` colour, a float, or
-                ``None`` for :data:`DEFAULT_BG`.
+                ``None`` for the method's grey (:data:`eventrecon.colour.GREY_LINEAR`).
             chunk: rays per chunk (default ``self.chunk``).
 
         Returns:
@@ -252,7 +255,7 @@ class Renderer(nn.Module):
         o, d = cams.image_rays(view)
         o, d = o.to(device), d.to(device)
         if bg_image is None:
-            bg_image = DEFAULT_BG
+            bg_image = GREY_LINEAR
         bg = torch.as_tensor(bg_image, dtype=torch.float32, device=device)
         if bg.shape == (h, w, 3):
             bg = bg.reshape(h * w, 3)

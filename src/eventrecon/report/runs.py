@@ -1,28 +1,15 @@
-"""Run folders: the ``metrics.json`` / ``curve.csv`` contract, reading, writing, collecting.
+"""Run folders as the report reads them: collecting, copying and reading runs.
 
-A run folder (a Hydra job folder, e.g. ``multirun/<date>/<time>/<job>/``) holds
-
-- ``metrics.json``: ``{"scene", "model", "loss", "views", "fps", "psnr", "ssim",
-  "lpips", "lpips_note", "wall_s", "steps", "sec_per_it", "peak_mem_mb", "status",
-  "error"}`` (``model`` ∈ nerf | ngp | tensorf_cp | hexplane; ``status`` ok | failed;
-  ``lpips`` may be null with a ``lpips_note``); an optional ``"experiment"`` key
-  (e.g. ``"table3"``) says which table the run was swept for; an optional
-  ``"psnr_background"``, the PSNR of the background alone (an empty field);
-- ``curve.csv``: header ``wall_s,step,psnr,ssim,lpips,kind`` with ``kind`` = ``cheap``
-  (subsampled held-out image between full evaluations) or ``full``; empty cells = NaN.
-  Without a top-level one, the segments' ``seg<k>/curve.csv`` are read in order, each
-  shifted to start where the previous one ended when its clock restarts;
-- ``.hydra/overrides.yaml``: when ``metrics.json`` has no ``experiment``, an
-  ``experiment=<name>`` override there names it.
-
-:func:`collect_runs` walks folders recursively; a malformed ``metrics.json`` is skipped
-with a one-line warning (the report of a sweep must survive one broken job).
+The files of a run folder (``metrics.json``, ``curve.csv``, ``seg<k>/``) are defined by
+:mod:`eventrecon.records`; this module finds them (recursively, a malformed
+``metrics.json`` is skipped with a one-line warning so the report of a sweep survives
+one broken job), turns each into a :class:`Run`, reads curves as columns and copies a
+committable record of a sweep. When ``metrics.json`` has no ``experiment``, an
+``experiment=<name>`` override in ``.hydra/overrides.yaml`` names it.
 """
 
 from __future__ import annotations
 
-import csv
-import json
 import logging
 import math
 import shutil
@@ -34,13 +21,19 @@ from typing import Any
 import numpy as np
 
 from eventrecon.errors import InputError
+from eventrecon.records import (
+    CURVE_FILE,
+    CURVE_HEADER,
+    METRICS_FILE,
+    read_curve_rows,
+    read_metrics,
+    stitch_curves,
+    write_metrics,
+)
+from eventrecon.records import write_curve as _write_curve
 
 log = logging.getLogger(__name__)
 
-METRICS_FILE = "metrics.json"
-CURVE_FILE = "curve.csv"
-CURVE_HEADER: tuple[str, ...] = ("wall_s", "step", "psnr", "ssim", "lpips", "kind")
-REQUIRED_KEYS: tuple[str, ...] = ("scene", "model", "loss", "views", "fps", "status")
 MODELS: tuple[str, ...] = ("nerf", "ngp", "tensorf_cp", "hexplane")
 
 
@@ -94,17 +87,7 @@ def read_run(folder: str | Path) -> Run:
     """Read ``<folder>/metrics.json``; :class:`InputError` on a malformed file."""
     folder = Path(folder)
     path = folder / METRICS_FILE
-    try:
-        rec = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise InputError(path, "(file)", "a readable JSON object", type(exc).__name__) from exc
-    if not isinstance(rec, dict):
-        raise InputError(path, "(top level)", "a JSON object", type(rec).__name__)
-    for key in REQUIRED_KEYS:
-        if key not in rec:
-            raise InputError(path, key, "present (metrics.json contract)", "missing")
-    if rec["status"] not in ("ok", "failed"):
-        raise InputError(path, "status", "'ok' or 'failed'", repr(rec["status"]))
+    rec = read_metrics(path)
     try:
         views = None if rec["views"] is None else int(rec["views"])
         fps = None if rec["fps"] is None else float(rec["fps"])
@@ -170,35 +153,27 @@ def copy_runs(runs: Iterable[Run], roots: Iterable[str | Path], dest: str | Path
 
 
 def read_curve(folder: str | Path) -> dict[str, np.ndarray]:
-    """``<folder>/curve.csv`` (or the segments' curves) as columns: float arrays
-    ``wall_s, step, psnr, ssim, lpips`` (empty cell → NaN) and a str array ``kind``,
-    sorted by ``wall_s``. Missing file → empty columns; a wrong header → :class:`InputError`.
+    """``<folder>/curve.csv`` (or its segments' curves, stitched by
+    :func:`eventrecon.records.stitch_curves`) as columns: float arrays ``wall_s, step,
+    psnr, ssim, lpips`` (empty cell → NaN) and a str array ``kind``, sorted by
+    ``wall_s``. Missing file → empty columns; a malformed cell → :class:`InputError`.
     """
     folder = Path(folder)
     top = folder / CURVE_FILE
-    paths = [top] if top.is_file() else sorted(
-        folder.glob(f"seg*/{CURVE_FILE}"), key=lambda p: (len(p.parent.name), p.parent.name)
-    )
+    if top.is_file():
+        rows, path = read_curve_rows(top), top
+    else:
+        segs = sorted(folder.glob("seg*/"), key=lambda p: (len(p.name), p.name))
+        rows, path = stitch_curves(segs), folder
     cols: dict[str, list] = {k: [] for k in CURVE_HEADER}
-    for path in paths:
-        start = len(cols["wall_s"])
-        with path.open(newline="") as fh:
-            reader = csv.DictReader(fh)
-            missing = [k for k in CURVE_HEADER if k not in (reader.fieldnames or [])]
-            if missing:
-                raise InputError(path, "header", ",".join(CURVE_HEADER), reader.fieldnames)
-            for i, row in enumerate(reader, start=2):
-                for k in CURVE_HEADER[:-1]:
-                    cell = (row[k] or "").strip()
-                    try:
-                        cols[k].append(float(cell) if cell else math.nan)
-                    except ValueError as exc:
-                        raise InputError(path, f"line {i} {k}", "a number", cell) from exc
-                cols["kind"].append((row["kind"] or "full").strip())
-        seg, before = cols["wall_s"][start:], cols["wall_s"][:start]
-        if seg and before and min(seg) < max(before):  # the segment's clock restarted
-            shift = max(before)
-            cols["wall_s"][start:] = [w + shift for w in seg]
+    for i, row in enumerate(rows, start=2):
+        for k in CURVE_HEADER[:-1]:
+            cell = (row[k] or "").strip()
+            try:
+                cols[k].append(float(cell) if cell else math.nan)
+            except ValueError as exc:
+                raise InputError(path, f"line {i} {k}", "a number", cell) from exc
+        cols["kind"].append((row["kind"] or "full").strip())
     return _as_columns(cols)
 
 
@@ -219,32 +194,17 @@ def write_run(
     metrics: Mapping[str, Any],
     curve: Iterable[Mapping[str, Any]] = (),
 ) -> Path:
-    """Write ``metrics.json`` (and ``curve.csv`` from rows with the CURVE_HEADER keys).
-
-    Missing keys of the contract are written as ``null``; ``None`` curve cells as empty.
-    Returns the folder. Used by the demo sweep and by tests; training code may use it.
-    """
+    """Write ``metrics.json`` (and ``curve.csv`` from rows with the CURVE_HEADER keys)
+    through :mod:`eventrecon.records`. Returns the folder (demo sweeps and tests)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    keys = REQUIRED_KEYS + (
-        "psnr", "ssim", "lpips", "lpips_note", "wall_s", "steps", "sec_per_it",
-        "peak_mem_mb", "error",
-    )
-    rec = {k: metrics.get(k) for k in keys} | dict(metrics)
-    (folder / METRICS_FILE).write_text(json.dumps(rec, indent=2))
+    write_metrics(folder, metrics)
     rows = list(curve)
     if rows:
-        write_curve(folder / CURVE_FILE, rows)
+        _write_curve(folder / CURVE_FILE, rows)
     return folder
 
 
 def write_curve(path: str | Path, rows: Iterable[Mapping[str, Any]]) -> Path:
     """Write curve rows (keys of ``CURVE_HEADER``; ``None`` → empty cell) as CSV."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(CURVE_HEADER)
-        for r in rows:
-            w.writerow(["" if r.get(k) is None else r.get(k) for k in CURVE_HEADER])
-    return path
+    return _write_curve(path, rows)

@@ -1,0 +1,211 @@
+"""Run records: the one owner of ``metrics.json``, ``curve.csv`` and ``seg<k>/done.json``.
+
+A run folder holds
+
+- ``metrics.json``: the run's identity (:data:`REQUIRED_KEYS`: ``scene, model, loss,
+  views, fps, status``; optionally ``experiment``, ``tag``, ``seed``) and, once
+  evaluated, ``psnr, ssim, lpips`` (``lpips`` may be null with an ``lpips_note``),
+  ``psnr_background`` (the empty field's score on the same frames), ``wall_s``,
+  ``steps``, ``sec_per_it``, ``peak_mem_mb``, ``total_s``. ``status`` is one of
+  :data:`STATUSES`: ``ok``; ``failed`` (with ``error``); ``partial`` (some segments of
+  a ``data.segment=K`` sweep are still to train; never written, only returned);
+- ``curve.csv``: :data:`CURVE_HEADER` rows, ``kind`` = ``cheap`` (a subsampled held-out
+  image) or ``full``; an empty cell is a missing value. Written per segment
+  (``seg<k>/curve.csv``, the segment's own steps and training seconds) and, once the
+  run is done, for the whole run (:func:`stitch_curves`);
+- ``seg<k>/done.json``: a trained segment — ``max_steps`` (its budget), ``steps``,
+  ``wall_s``, ``nonfinite_steps``.
+
+Readers (:mod:`eventrecon.report.runs`) and writers (the runner, the held-out monitor)
+both use the names and functions here, so the format has one definition.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+from eventrecon.checkpointing import atomic_write_bytes, atomic_write_json
+from eventrecon.errors import InputError
+
+__all__ = ["METRICS_FILE", "CURVE_FILE", "DONE_FILE", "CURVE_HEADER", "REQUIRED_KEYS",
+           "STATUSES", "run_info", "write_metrics", "read_metrics", "finished_metrics",
+           "write_done", "read_done", "CurveLog", "read_curve_rows", "write_curve",
+           "stitch_curves"]
+
+METRICS_FILE = "metrics.json"
+CURVE_FILE = "curve.csv"
+DONE_FILE = "done.json"
+CURVE_HEADER: tuple[str, ...] = ("wall_s", "step", "psnr", "ssim", "lpips", "kind")
+REQUIRED_KEYS: tuple[str, ...] = ("scene", "model", "loss", "views", "fps", "status")
+#: Statuses a ``metrics.json`` may carry.
+STATUSES: tuple[str, ...] = ("ok", "failed")
+#: Keys written as ``null`` when a record does not have them (the report reads them).
+OPTIONAL_KEYS: tuple[str, ...] = ("psnr", "ssim", "lpips", "lpips_note", "wall_s", "steps",
+                                  "sec_per_it", "peak_mem_mb", "error")
+
+
+# ---------------------------------------------------------------------------- metrics.json
+def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
+             fps: float | None = None) -> dict[str, Any]:
+    """What identifies a run in the reports: scene, model, loss, views, fps, experiment,
+    tag and seed (``cfg`` is the run's composed config, ``meta`` the dataset's)."""
+    return {"scene": meta.get("scene_name") or cfg.scene.get("name", "custom"),
+            "model": cfg.model.get("name") or str(cfg.model.get("_target_")),
+            "loss": cfg.loss.get("name", "full"),
+            "views": views if views is not None else cfg.data.views,
+            "fps": fps if fps is not None else (cfg.data.fps or meta.get("rgb_fps")),
+            "experiment": cfg.get("sweep_name"), "tag": cfg.get("tag")}
+
+
+def write_metrics(folder: str | Path, metrics: Mapping[str, Any]) -> Path:
+    """Write ``folder/metrics.json`` atomically; keys of the contract it lacks are null."""
+    path = Path(folder) / METRICS_FILE
+    missing = [k for k in REQUIRED_KEYS if k not in metrics]
+    if missing:
+        raise InputError(path, ",".join(missing), "present (metrics.json contract)", "missing")
+    atomic_write_json(path, {k: metrics.get(k) for k in OPTIONAL_KEYS} | dict(metrics))
+    return path
+
+
+def read_metrics(path: str | Path) -> dict[str, Any]:
+    """A validated ``metrics.json`` (:class:`InputError` naming the file and key otherwise)."""
+    path = Path(path)
+    try:
+        rec = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(path, "(file)", "a readable JSON object", type(exc).__name__) from exc
+    if not isinstance(rec, dict):
+        raise InputError(path, "(top level)", "a JSON object", type(rec).__name__)
+    for key in REQUIRED_KEYS:
+        if key not in rec:
+            raise InputError(path, key, "present (metrics.json contract)", "missing")
+    if rec["status"] not in STATUSES:
+        raise InputError(path, "status", " or ".join(map(repr, STATUSES)), repr(rec["status"]))
+    return rec
+
+
+def finished_metrics(path: str | Path, max_steps: int, evaluate: bool,
+                     steps: int | None = None) -> dict | None:
+    """``metrics.json`` of the same finished run (status ok, the same ``max_steps`` and,
+    when given, the same ``steps``; scored if ``evaluate``), else ``None``."""
+    path = Path(path)
+    if not path.exists():
+        return None
+    done = json.loads(path.read_text())
+    same = (done.get("status") == "ok" and done.get("max_steps") == int(max_steps)
+            and (steps is None or done.get("steps") == steps))
+    return done if same and (not evaluate or done.get("psnr") is not None) else None
+
+
+# ---------------------------------------------------------------------------- done.json
+def write_done(seg_dir: str | Path, max_steps: int, steps: int, wall_s: float,
+               nonfinite_steps: int) -> None:
+    """Record a trained segment (``seg<k>/done.json``)."""
+    atomic_write_json(Path(seg_dir) / DONE_FILE, {
+        "max_steps": int(max_steps), "steps": int(steps), "wall_s": float(wall_s),
+        "nonfinite_steps": int(nonfinite_steps)})
+
+
+def read_done(seg_dir: str | Path, max_steps: int | None = None) -> dict | None:
+    """The segment's ``done.json`` (trained with exactly ``max_steps`` when given), else None."""
+    path = Path(seg_dir) / DONE_FILE
+    if not path.exists():
+        return None
+    done = json.loads(path.read_text())
+    return done if max_steps is None or int(done.get("max_steps", -1)) == max_steps else None
+
+
+# ---------------------------------------------------------------------------- curve.csv
+def _cell(value: Any) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return ""
+    return f"{value:.5f}" if isinstance(value, float) else str(value)
+
+
+class CurveLog:
+    """Appends ``curve.csv`` rows of one segment as training goes (rank 0 only).
+
+    >>> import tempfile
+    >>> log = CurveLog(Path(tempfile.mkdtemp()) / "curve.csv")
+    >>> log.append(1.5, 100, {"psnr": 24.0}, "cheap"); log.append(3.0, 200, {"psnr": 25.0}, "full")
+    >>> log.truncate_after(100); [r["step"] for r in read_curve_rows(log.path)]
+    ['100']
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+
+    def append(self, wall_s: float, step: int, row: Mapping[str, float | None],
+               kind: str) -> None:
+        """One row: training seconds, step, ``psnr/ssim/lpips`` (None → empty), kind."""
+        new = not self.path.exists()
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with self.path.open("a", newline="") as f:
+            w = csv.writer(f)
+            if new:
+                w.writerow(CURVE_HEADER)
+            w.writerow([f"{wall_s:.3f}", step]
+                       + [_cell(row.get(k)) for k in ("psnr", "ssim", "lpips")] + [kind])
+
+    def truncate_after(self, step: int) -> None:
+        """Drop rows logged after ``step`` (a resumed run logs them again), atomically."""
+        if not self.path.exists():
+            return
+        rows = read_curve_rows(self.path)
+        kept = [r for r in rows if int(r["step"]) <= step]
+        if len(kept) != len(rows):
+            write_curve(self.path, kept)
+
+
+def read_curve_rows(path: str | Path) -> list[dict[str, str]]:
+    """The rows of one ``curve.csv`` as dicts of strings (:class:`InputError` on a wrong
+    header)."""
+    path = Path(path)
+    with path.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        missing = [k for k in CURVE_HEADER if k not in (reader.fieldnames or [])]
+        if missing:
+            raise InputError(path, "header", ",".join(CURVE_HEADER), reader.fieldnames)
+        return [dict(r) for r in reader]
+
+
+def write_curve(path: str | Path, rows: Iterable[Mapping[str, Any]]) -> Path:
+    """Write rows with the :data:`CURVE_HEADER` keys (``None`` → empty cell), atomically."""
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(CURVE_HEADER)
+    for r in rows:
+        w.writerow(["" if r.get(k) is None else r.get(k) for k in CURVE_HEADER])
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, buf.getvalue().encode())
+    return path
+
+
+def stitch_curves(seg_dirs: Iterable[str | Path]) -> list[dict[str, str]]:
+    """The segments' curves as one run: each segment's steps and seconds continue where
+    the previous segment ended — at its ``done.json`` (steps, training seconds), or at
+    its last row when it has none. Segments without a curve add only their offset.
+    """
+    rows: list[dict[str, str]] = []
+    step0, wall0 = 0, 0.0
+    for d in map(Path, seg_dirs):
+        path = d / CURVE_FILE
+        seg = read_curve_rows(path) if path.exists() else []
+        for r in seg:
+            rows.append(r | {"step": str(int(r["step"]) + step0),
+                             "wall_s": f"{float(r['wall_s']) + wall0:.3f}"})
+        done = read_done(d)
+        if done is not None:
+            step0 += int(done.get("steps", 0))
+            wall0 += float(done.get("wall_s", 0.0))
+        elif seg:
+            step0 += max(int(r["step"]) for r in seg)
+            wall0 += max(float(r["wall_s"]) for r in seg)
+    return rows
