@@ -4,8 +4,12 @@ Modules, in data-flow order:
 
 - :mod:`~eventrecon.sim.config`   field reading/validation, derived seeds, config hash
 - :mod:`~eventrecon.sim.motion`, :mod:`~eventrecon.sim.texture`, :mod:`~eventrecon.sim.scene`
-  primitives (sphere, box, ground plane) with motions and object-local textures
-- :mod:`~eventrecon.sim.raytrace` exact batched ray casting, Lambertian shading, per-ray time
+  objects (spheres, boxes, ground plane, deforming skirts, groups with joints) with
+  motions and object-local textures
+- :mod:`~eventrecon.sim.primitives`, :mod:`~eventrecon.sim.skirt` exact ray intersections
+  (a deforming sheet: one quadratic per band)
+- :mod:`~eventrecon.sim.tracer`, :mod:`~eventrecon.sim.raytrace` batched ray casting through
+  the object hierarchy, Lambertian shading, per-ray time, subject masks
 - :mod:`~eventrecon.sim.spec`     the scene-level settings, rig cameras, frame times
 - :mod:`~eventrecon.sim.ideal`    the event core (adaptive sampling, interpolated crossings)
 - :mod:`~eventrecon.sim.registry`, :mod:`~eventrecon.sim.event_effects`,

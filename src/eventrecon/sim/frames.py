@@ -7,6 +7,9 @@
   e.g. a ground plane, kept) through the same frame effects (training views: what the
   camera records of the empty set) or sharp (held-out views, for evaluation).
 - Ground truth: sharp renders of the held-out views at ``eval_fps`` times.
+- Subject masks of both splits at their frame times (:func:`render_masks`): the pixels
+  whose ray first hits a subject (an object the background leaves out). Always sharp:
+  an exposure-blurred frame gets the mask at its own time.
 
 Random effects draw from ``effect_rng(seed, "frames", name, occurrence, kind, view, k)``
 (``kind`` 0 = frame ``k``, 1 = background).
@@ -25,7 +28,8 @@ from eventrecon.sim.raytrace import PixelRenderer
 from eventrecon.sim.scene import Scene
 from eventrecon.sim.spec import SceneSpec
 
-__all__ = ["render_frames", "render_backgrounds", "empty_scene", "apply_frame_effects"]
+__all__ = ["render_frames", "render_backgrounds", "render_masks", "empty_scene",
+           "apply_frame_effects"]
 
 
 def empty_scene(scene: Scene) -> Scene:
@@ -85,3 +89,12 @@ def render_backgrounds(spec: SceneSpec, prend: PixelRenderer, effects: bool = Tr
             img = apply_frame_effects(spec, img, ctx, (1, v, 0))
         out.append(linear_to_srgb(img))
     return np.stack(out)
+
+
+def render_masks(prend: PixelRenderer, times: np.ndarray) -> np.ndarray:
+    """``[F, V, H, W]`` bool subject masks of every view at time units ``times [F]``
+    (:meth:`PixelRenderer.masks`, sharp at each frame's time)."""
+    t = torch.as_tensor(np.asarray(times, dtype=np.float64) / TIME_SPAN)
+    if t.numel() == 0:
+        return np.zeros((0, len(prend.cams), prend.cams.height, prend.cams.width), bool)
+    return np.stack([prend.masks(v, t).numpy() for v in range(len(prend.cams))], axis=1)

@@ -24,6 +24,7 @@ keyframe ``keys [[t, dx, dy, dz(, deg)], …]`` piecewise-linear ``d`` (and angl
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -49,13 +50,19 @@ def rotation_matrices(axis: Tensor, angle: Tensor) -> Tensor:
     ...                torch.tensor([0., 0., -1.], dtype=torch.float64))
     True
     """
-    k = axis / axis.norm()
-    kx = torch.zeros(3, 3, dtype=angle.dtype, device=angle.device)
-    kx[0, 1], kx[0, 2], kx[1, 0] = -k[2], k[1], k[2]
-    kx[1, 2], kx[2, 0], kx[2, 1] = -k[0], -k[1], k[0]
+    kx, kx2 = _cross_matrices(tuple((axis / axis.norm()).tolist()))
+    kx, kx2 = kx.to(angle), kx2.to(angle)
     s, c = torch.sin(angle)[:, None, None], torch.cos(angle)[:, None, None]
     eye = torch.eye(3, dtype=angle.dtype, device=angle.device)
-    return eye + s * kx + (1 - c) * (kx @ kx)
+    return eye + s * kx + (1 - c) * kx2
+
+
+@functools.lru_cache(maxsize=256)
+def _cross_matrices(k: tuple[float, float, float]) -> tuple[Tensor, Tensor]:
+    """``([k]×, [k]×²)`` (float64) of a unit axis, cached per axis."""
+    kx = torch.tensor([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]],
+                      dtype=torch.float64)
+    return kx, kx @ kx
 
 
 @dataclass
@@ -82,9 +89,9 @@ class Motion:
             return z
         if self.kind == "keyframe":
             keys = self.p["keys"]
-            for i in range(3):
-                z[:, i] = _interp(t, keys[:, 0], keys[:, 1 + i])
-            return z
+            if not np.any(keys[:, 1:4]):
+                return z
+            return _interp(t, keys[:, 0], keys[:, 1:4])
         return z
 
     def rotation(self, t: Tensor) -> Tensor | None:
@@ -92,7 +99,7 @@ class Motion:
         if self.kind == "spin":
             ang = math.radians(self.p["phase_deg"]) + 2 * math.pi * self.p["turns"] * t
         elif self.kind == "keyframe" and self.p["keys"].shape[1] == 5:
-            ang = torch.deg2rad(_interp(t, self.p["keys"][:, 0], self.p["keys"][:, 4]))
+            ang = torch.deg2rad(_interp(t, self.p["keys"][:, 0], self.p["keys"][:, 4:5])[:, 0])
         else:
             return None
         return rotation_matrices(torch.as_tensor(self.p["axis"], dtype=t.dtype, device=t.device),
@@ -110,24 +117,62 @@ class Motion:
             return float(np.linalg.norm(self.p["keys"][:, 1:4], axis=1).max())
         return 0.0
 
+    def constant_intervals(self, n: int) -> np.ndarray:
+        """``[n]`` bool: whether ``d`` and ``R`` are constant over each closed interval
+        ``[k/n, (k+1)/n]`` (exact: a keyframe track is constant there iff its values at
+        both ends and at every key inside agree).
+
+        >>> m = parse_motions({"type": "keyframe", "keys": [[0, 0, 0, 0], [0.5, 1, 0, 0],
+        ...                                                 [0.75, 1, 0, 0]]}, "s", "m")[0]
+        >>> m.constant_intervals(4).tolist()
+        [False, False, True, True]
+        """
+        if not self.moves:
+            return np.ones(n, bool)
+        if self.kind != "keyframe":
+            return np.zeros(n, bool)
+        keys = self.p["keys"]
+        edges = np.arange(n + 1) / n
+        vals = np.stack([np.interp(edges, keys[:, 0], keys[:, i])
+                         for i in range(1, keys.shape[1])], -1)                # [n+1, C]
+        const = np.all(vals[1:] == vals[:-1], axis=-1)
+        for tk, vk in zip(keys[:, 0], keys[:, 1:]):
+            k = int(np.floor(tk * n))
+            if 0 <= k < n and edges[k] < tk < edges[k + 1]:
+                const[k] &= bool(np.all(vk == vals[k]))
+        return const
+
+    @property
+    def translates(self) -> bool:
+        """Whether the displacement ``d`` is ever non-zero."""
+        if self.kind == "linear":
+            return bool(np.any(self.p["to"]))
+        if self.kind in ("orbit", "bounce"):
+            return self.p["radius" if self.kind == "orbit" else "height"] != 0
+        return self.kind == "keyframe" and bool(np.any(self.p["keys"][:, 1:4]))
+
     @property
     def moves(self) -> bool:
         """Whether the pose changes over time at all."""
+        if self.kind == "keyframe":
+            keys = self.p["keys"][:, 1:]
+            return bool(np.any(keys != keys[0]))
         return self.kind != "static" and not (self.kind in ("orbit", "spin") and
                                               self.p["turns"] == 0)
 
 
 def _interp(t: Tensor, tk: np.ndarray, vk: np.ndarray) -> Tensor:
-    """Piecewise-linear interpolation of keys ``(tk, vk)`` at ``t``, clamped at the ends."""
+    """Piecewise-linear interpolation of keys ``(tk [K], vk [K, C])`` at ``t [N]``,
+    clamped at the ends: ``[N, C]``."""
     tk_t = torch.as_tensor(np.ascontiguousarray(tk), dtype=t.dtype, device=t.device)
     vk_t = torch.as_tensor(np.ascontiguousarray(vk), dtype=t.dtype, device=t.device)
     if tk_t.numel() == 1:
-        return vk_t.expand(t.shape[0]).clone()
+        return vk_t.expand(t.shape[0], vk_t.shape[1]).clone()
     tc = t.clamp(tk_t[0], tk_t[-1])
     i = torch.searchsorted(tk_t, tc, right=True).clamp(1, tk_t.numel() - 1)
     t0, t1, v0, v1 = tk_t[i - 1], tk_t[i], vk_t[i - 1], vk_t[i]
     w = ((tc - t0) / (t1 - t0).clamp_min(1e-300)).clamp(0, 1)
-    return v0 + w * (v1 - v0)
+    return v0 + w[:, None] * (v1 - v0)
 
 
 #: Motion types and the parameters each accepts.

@@ -1,9 +1,10 @@
 """From a scene config to a dataset on disk: :func:`simulate_dataset`, :func:`ensure_dataset`.
 
 ``simulate_dataset`` builds the training split (ring or camdict cameras, events with the
-scene's event effects, RGB frames with its frame effects, backgrounds) and the held-out
-``validation`` split (cameras, sharp ground-truth renders at ``eval_fps``, sharp
-backgrounds; no events) plus ``meta`` (the keys of :class:`~eventrecon.data.types.Dataset`:
+scene's event effects, RGB frames with its frame effects, backgrounds, subject masks)
+and the held-out ``validation`` split (cameras, sharp ground-truth renders at
+``eval_fps``, sharp backgrounds, subject masks; no events) plus ``meta`` (the keys of
+:class:`~eventrecon.data.types.Dataset`:
 ``tonemap_eps, threshold, decay, bayer, duration_s, cylinder, segments, scene, effects``,
 and sampling statistics under ``sim``).
 
@@ -27,7 +28,7 @@ from eventrecon.data.writer import write_dataset
 from eventrecon.locks import exclusive
 from eventrecon.sim.config import config_hash, to_plain
 from eventrecon.sim.event_sim import simulate_events
-from eventrecon.sim.frames import render_backgrounds, render_frames
+from eventrecon.sim.frames import render_backgrounds, render_frames, render_masks
 from eventrecon.sim.raytrace import PixelRenderer
 from eventrecon.sim.spec import SceneSpec, build_cameras, frame_times, parse_spec
 
@@ -36,7 +37,9 @@ __all__ = ["simulate_dataset", "ensure_dataset", "dataset_path", "torch_threads"
 log = logging.getLogger(__name__)
 
 #: Bumped whenever the simulator's output for a given config changes (part of the hash).
-SIM_VERSION: int = 1
+#: 2: both splits carry subject masks (``mask/<frame>/<view>.png``); datasets cached by
+#: version 1 have none and are never reused.
+SIM_VERSION: int = 2
 
 
 def _meta(spec: SceneSpec, stats: dict) -> dict:
@@ -48,6 +51,7 @@ def _meta(spec: SceneSpec, stats: dict) -> dict:
         "effects": {"events": [e.config() for e in spec.event_effects],
                     "frames": [e.config() for e in spec.frame_effects]},
         "sim": {"version": SIM_VERSION, **stats},
+        "masks": "subject: the nearest hit is a moving or subject: true object",
         "grey_events": "log(mean(R, G, B) + tonemap_eps)" if not spec.bayer else None,
     }
 
@@ -89,7 +93,8 @@ def _simulate(spec: SceneSpec, root: str | Path) -> Dataset:
     rgb_t = frame_times(spec.duration_s, spec.rgb_fps, spec.where, "rgb_fps")
     frames = render_frames(spec, train_r, rgb_t, effects=True)
     train = SplitData(Path(root) / "train", train_cams, streams, rgb_t, frames,
-                      background=render_backgrounds(spec, train_r, effects=True))
+                      background=render_backgrounds(spec, train_r, effects=True),
+                      masks=render_masks(train_r, rgb_t))
     splits = {"train": train}
     if len(held_cams):
         held_r = PixelRenderer(spec.scene, held_cams, spec.supersample)
@@ -97,7 +102,8 @@ def _simulate(spec: SceneSpec, root: str | Path) -> Dataset:
         splits["validation"] = SplitData(
             Path(root) / "validation", held_cams, None, gt_t,
             render_frames(spec, held_r, gt_t, effects=False),
-            background=render_backgrounds(spec, held_r, effects=False))
+            background=render_backgrounds(spec, held_r, effects=False),
+            masks=render_masks(held_r, gt_t))
     n_ev = int(sum(len(s) for s in streams))
     stats = {"events": n_ev, "ideal_events": int(core.t.size), "pixel_samples": core.n_samples,
              "forced_steps": core.n_forced, "dynamic_pixels": core.extra["dynamic_pixels"]}

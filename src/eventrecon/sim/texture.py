@@ -25,7 +25,7 @@ from torch import Tensor
 from eventrecon.errors import InputError
 from eventrecon.sim.config import get, get_vec
 
-__all__ = ["Texture", "parse_texture", "TEXTURES"]
+__all__ = ["Texture", "TextureTable", "parse_texture", "TEXTURES"]
 
 TEXTURES: tuple[str, ...] = ("solid", "checker", "stripes")
 _OFFSET = 0.31
@@ -46,11 +46,43 @@ class Texture:
         if self.kind == "solid":
             return cols[0].expand(p.shape[0], 3)
         if self.kind == "checker":
-            idx = torch.floor(p / self.size + _OFFSET).sum(-1)
+            idx = torch.floor(p / self.size + _OFFSET) @ torch.ones(3, dtype=p.dtype,
+                                                                    device=p.device)
         else:
             a = torch.as_tensor(self.axis, dtype=p.dtype, device=p.device)
             idx = torch.floor(p @ (a / a.norm()) / (0.5 * self.size) + _OFFSET)
         return cols[torch.remainder(idx, 2).long()]
+
+
+class TextureTable:
+    """Several textures evaluated in one pass: ``albedo(k [N], p [N, 3])`` gives texture
+    ``k[i]``'s albedo at ``p[i]``, the same formulas as :meth:`Texture.albedo`.
+
+    >>> tt = TextureTable([Texture("solid", np.full((2, 3), 0.5)),
+    ...                    Texture("stripes", np.eye(3)[:2], 0.2, np.array([1., 0, 0]))])
+    >>> tt.albedo(torch.tensor([0, 1, 1]), torch.tensor([[0., 0, 0], [0., 0, 0], [.1, 0, 0]],
+    ...                                                  dtype=torch.float64)).tolist()
+    [[0.5, 0.5, 0.5], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+    """
+
+    def __init__(self, textures: list[Texture]):
+        self.kind = torch.tensor([TEXTURES.index(t.kind) for t in textures])
+        self.colors = torch.as_tensor(np.stack([t.colors for t in textures]), dtype=torch.float64)
+        self.size = torch.tensor([float(t.size) for t in textures], dtype=torch.float64)
+        axes = np.stack([np.zeros(3) if t.axis is None else t.axis for t in textures])
+        norm = np.linalg.norm(axes, axis=1, keepdims=True)
+        self.axis = torch.as_tensor(axes / np.where(norm > 0, norm, 1.0), dtype=torch.float64)
+
+    def albedo(self, k: Tensor, p: Tensor) -> Tensor:
+        """``[N, 3]`` albedo of textures ``k [N]`` (long) at local points ``p [N, 3]``."""
+        size = self.size[k]
+        ones = torch.ones(3, dtype=p.dtype, device=p.device)
+        checker = torch.floor(p / size[:, None] + _OFFSET) @ ones
+        stripes = torch.floor(((p * self.axis[k]) @ ones) / (0.5 * size) + _OFFSET)
+        kind = self.kind[k]
+        idx = torch.where(kind == 1, checker, torch.where(kind == 2, stripes,
+                                                          torch.zeros_like(stripes)))
+        return self.colors[k, torch.remainder(idx, 2).long()]
 
 
 def parse_texture(raw: Mapping | None, where: str, prefix: str) -> Texture:
