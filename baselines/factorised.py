@@ -1,95 +1,98 @@
-"""Common base of the factorised backbones (TensoRF-CP 4D, HexPlane).
+"""Common base of the factorised backbones (TensoRF-CP 4D, HexPlane), as the authors
+build them.
 
-A factorised field holds :class:`~baselines.grids.FactorGrids` whose channels are split
-into ``R`` density and ``R`` appearance components, a :class:`~baselines.heads.FactorDecoder`
-and a :class:`~baselines.schedules.GrowthPlan`. Subclasses only say which axes the
-factors span and how factor samples combine into components (:meth:`components`).
+A factorised field holds :class:`~baselines.grids.FactorGrids` with ``F·R`` channels:
+``F = 4`` output features (raw density and three raw colours) times rank ``R``. A
+subclass says which factors exist and how their samples combine (:meth:`combine`, a
+product per rank component); the rank is then summed directly,
+
+.. math:: \\mathbf{o}_f(\\mathbf{c}) = \\sum_{r=1}^{R} g_{f R + r}(\\mathbf{c}),\\quad
+          \\sigma = \\mathrm{trunc\\_exp}(o_0),\\quad
+          \\mathbf{rgb} = \\mathrm{sigmoid}(o_{1..3}),
+
+with no decoder network (the authors' ``res.view(N, F, R).sum(-1)``). Coordinates are
+the world positions normalised to the clipping cylinder's bounding box
+(:meth:`set_scene_box`, called by the run with its renderer's cylinder) and ``2t − 1``.
+Every factor starts as ``N(0, (init_gain / R)²)``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, Literal
+from typing import Any
 
 import torch
 from torch import Tensor
 
-from baselines.grids import FactorGrids, normalize_xyzt
-from baselines.heads import DensityActivation, FactorDecoder
+from baselines.grids import FactorGrids, box_normalize
+from baselines.heads import activate
 from baselines.schedules import GridGrowth, GrowthPlan
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 
+#: Output features per rank component: raw density and three raw colours.
+FEATURES = 4
+
 
 class FactorisedField(Field):
-    """Field ``(xyz, t) -> (sigma, rgb)`` from products of dense factor grids.
+    """Field ``(xyz, t) -> (sigma, rgb)`` from rank-summed products of dense factor grids.
 
     Args:
         axes: input axes spanned by each factor (see :class:`FactorGrids`).
-        init: ``(mean, std)`` of each factor's Gaussian initialisation.
-        rank: components ``R`` per group; factors have ``2R`` channels (density, appearance).
-        app_dim: appearance features reaching the decoder (``R`` times a subclass factor).
-        resolution_init, resolution_final: vertices per axis ``(x, y, z, t)``.
-        n_growth: number of upsamplings (0: start at the final resolution).
-        growth_until: fraction of the run by which growth ends.
-        decoder, decoder_hidden, density_shift, density_activation: see :class:`FactorDecoder`.
-        decoder_lr_scale: the decoder's learning rate is ``lr * decoder_lr_scale``.
-        bound: world box half-size mapped to ``[-1, 1]``.
+        align_corners: sampling convention of each factor.
+        rank: components ``R`` per output feature.
+        plan: the growth of the per-axis resolution ``(x, y, z, t)``.
+        init_gain: factors start as ``N(0, (init_gain / R)²)``.
         seed: initialisation seed.
     """
 
-    def __init__(self, axes: Sequence[Sequence[int]], init: Sequence[tuple[float, float]],
-                 rank: int, app_dim: int, resolution_init: Sequence[int],
-                 resolution_final: Sequence[int], n_growth: int, growth_until: float,
-                 decoder: Literal["linear", "mlp"], decoder_hidden: int,
-                 decoder_lr_scale: float, density_shift: float,
-                 density_activation: DensityActivation, bound: float, seed: int):
+    def __init__(self, axes: Sequence[Sequence[int]], align_corners: Sequence[bool],
+                 rank: int, plan: GrowthPlan, init_gain: float, seed: int):
         super().__init__()
-        for name, res in (("resolution_init", resolution_init),
-                          ("resolution_final", resolution_final)):
+        if rank < 1:
+            raise InputError("conf/model", "rank", "an integer >= 1", rank)
+        for name, res in (("resolution_init", plan.start), ("resolution_final", plan.end)):
             if len(res) != 4 or min(res) < 2:
                 raise InputError("conf/model", name, "4 resolutions (x, y, z, t), each >= 2",
                                  list(res))
-        if rank < 1 or n_growth < 0 or not 0.0 < growth_until <= 1.0:
-            raise InputError("conf/model", "rank/n_growth/growth_until",
-                             "rank >= 1, n_growth >= 0, 0 < growth_until <= 1",
-                             (rank, n_growth, growth_until))
-        self.rank = rank
-        self.bound = bound
-        self.decoder_lr_scale = decoder_lr_scale
-        self.plan = GrowthPlan(tuple(resolution_init), tuple(resolution_final), n_growth,
-                               growth_until)
+        self.rank = int(rank)
+        self.plan = plan
         gen = torch.Generator().manual_seed(seed)
-        self.grids = FactorGrids(axes, 2 * rank, self.plan.initial, init, gen)
-        self.decoder = FactorDecoder(app_dim, decoder, decoder_hidden, density_shift,
-                                     density_activation)
+        self.grids = FactorGrids(axes, FEATURES * self.rank, self.shapes(plan.initial),
+                                 init_gain / self.rank, align_corners, "zeros", gen)
+        self.register_buffer("box_lo", torch.tensor([-1.0, -1.0, -1.0]), persistent=False)
+        self.register_buffer("box_hi", torch.tensor([1.0, 1.0, 1.0]), persistent=False)
+
+    def shapes(self, resolution: Sequence[int]) -> list[tuple[int, ...]]:
+        """Each factor's grid shape at the per-axis ``resolution``."""
+        raise NotImplementedError
 
     @property
     def resolution(self) -> tuple[int, ...]:
-        """Current vertices per axis ``(x, y, z, t)``."""
-        return self.grids.resolution
+        """The current per-axis resolution ``(x, y, z, t)``, read off the factors' shapes
+        (so a grown checkpoint loaded into a fresh field reports its own)."""
+        raise NotImplementedError
+
+    def combine(self, samples: list[Tensor]) -> Tensor:
+        """Factor samples (``[F·R, N]`` each) → rank components ``[F·R, N]``."""
+        raise NotImplementedError
+
+    def set_scene_box(self, lo: Sequence[float], hi: Sequence[float]) -> None:
+        """The world box mapped to ``[-1, 1]^3`` (the clipping cylinder's bounding box)."""
+        self.box_lo.copy_(torch.as_tensor(lo, dtype=self.box_lo.dtype))
+        self.box_hi.copy_(torch.as_tensor(hi, dtype=self.box_hi.dtype))
 
     def upsample(self, resolution: Sequence[int]) -> None:
         """Grow every factor to ``resolution`` (new Parameters; rebuild the optimiser)."""
-        self.grids.upsample(resolution)
-
-    def components(self, samples: list[Tensor]) -> tuple[Tensor, Tensor]:
-        """Combine factor samples ``[2R, N]`` into ``(density [R_d, N], app [app_dim, N])``."""
-        raise NotImplementedError
+        self.grids.upsample(self.shapes(resolution))
 
     def forward(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
         """``xyz [N, 3], t [N, 1] -> (sigma [N], rgb [N, 3])``."""
-        coords = normalize_xyzt(xyz, t, self.bound)
-        return self.decoder(*self.components(self.grids(coords)))
-
-    def param_groups(self, lr: float) -> list[dict[str, Any]]:
-        """Grids at ``lr``, decoder at ``lr * decoder_lr_scale``."""
-        return [
-            {"params": list(self.grids.parameters()), "lr": lr, "name": "grids"},
-            {"params": list(self.decoder.parameters()), "lr": lr * self.decoder_lr_scale,
-             "name": "decoder"},
-        ]
+        coords = box_normalize(xyz, t, self.box_lo, self.box_hi)
+        out = self.combine(self.grids(coords))
+        out = out.reshape(FEATURES, self.rank, -1).sum(1)          # [F, N]
+        return activate(out[0], out[1:].t())
 
     def callbacks(self) -> list[Any]:
-        """Grid growth (upsampling + optimiser rebuild) when ``n_growth > 0``."""
-        return [GridGrowth(self, self.plan)] if self.plan.n_growth > 0 else []
+        """Grid growth (upsampling + optimiser rebuild) when the plan has stages."""
+        return [GridGrowth(self, self.plan)] if self.plan.n_stages > 1 else []

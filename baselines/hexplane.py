@@ -1,79 +1,86 @@
-"""HexPlane: six feature planes, three spatial and three space-time.
+"""HexPlane as the authors built it: three spatial planes, three space-time planes and
+three spatial lines.
 
-Planes ``P_xy, P_xz, P_yz`` (spatial) and ``P_zt, P_yt, P_xt`` (space-time), each
-``[2R, R_a, R_b]``. Complementary pairs multiply,
+With ``c`` the coordinates normalised to the clipping cylinder's box
+(:mod:`baselines.factorised`), the rank components are
 
-.. math:: g_p(\\mathbf{c}) = P_{S_p}(c_{S_p}) \\odot P_{T_p}(c_{T_p}),\\qquad
-          (S_p, T_p) \\in \\{(xy, zt), (xz, yt), (yz, xt)\\},
+.. math:: g = P_{xy}(c_x, c_y)\\, P_{zt}(c_z, c_t)\\, v_x(c_x)
+          + P_{xz}(c_x, c_z)\\, P_{yt}(c_y, c_t)\\, v_y(c_y)
+          + P_{yz}(c_y, c_z)\\, P_{xt}(c_x, c_t)\\, v_z(c_z),
 
-giving ``2R`` components per pair: raw density ``sum_p sum_{r<R} g_{p,r}`` and the
-appearance components of the three pairs concatenated (``3R``) and decoded to colour
-by a linear basis (or a small MLP). Density ``trunc_exp``, colour ``sigmoid``
-(:mod:`baselines.heads`). Growth as TensoRF-CP (:class:`~baselines.schedules.GridGrowth`).
-Spatial planes start as N(0, init_scale^2), time planes as 1 + N(0, 1e-2).
-
-:meth:`HexPlaneField.regularization` is total variation with the time direction weighted
-on its own (HexPlane's spatial TV plus a stronger temporal smoothness):
-``tv_space * [sum_spatial TV(P) + sum_spacetime TV_space(P)] + tv_time * sum_spacetime TV_t(P)``,
-where ``TV_space`` / ``TV_t`` difference a space-time plane along its spatial / its time axis.
-Paper scale: 500^3 x 24, rank 8, lr 1e-2.
+each factor with ``F·R`` channels, summed over the rank into the raw density and the
+three raw colours (the authors' ``XY·ZT·x + XZ·YT·y + YZ·XT·z``; no decoder). Planes are
+sampled with ``align_corners=True``, lines with ``False`` (their ``sample_mat`` /
+``sample_vec``), zero padding. Sizes: the spatial planes and lines have ``N`` vertices
+per axis; a space-time plane is allocated ``[N, N_t]`` but sampled with the space
+coordinate as ``grid_sample``'s x, which indexes the last (``N_t``) dimension, and time
+as y: in the authors' model a space-time plane resolves space with ``N_t = 24`` vertices
+and time with ``N = 500``. That layout is kept (``spacetime_layout="authors"``);
+``"swapped"`` gives space ``N`` and time ``N_t`` vertices. No growth, no total variation
+(the authors' configuration); the supplementary's sizes are ``N = 500``, ``N_t = 24``,
+rank 8.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Literal
 
-import torch
 from torch import Tensor
 
 from baselines.factorised import FactorisedField
-from baselines.grids import total_variation
-from baselines.heads import DensityActivation
+from baselines.schedules import GrowthPlan
+from eventrecon.errors import InputError
 
-#: (spatial plane, complementary space-time plane), axes 0..3 = (x, y, z, t).
-PAIRS: tuple[tuple[tuple[int, int], tuple[int, int]], ...] = (
-    ((0, 1), (2, 3)), ((0, 2), (1, 3)), ((1, 2), (0, 3)))
+#: (spatial plane axes, space-time plane axes as the authors sample them, line axis):
+#: axes 0..3 = (x, y, z, t); a plane's first axis indexes its first grid dimension.
+TERMS: tuple[tuple[tuple[int, int], tuple[int, int], int], ...] = (
+    ((1, 0), (3, 2), 0), ((2, 0), (3, 1), 1), ((2, 1), (3, 0), 2))
 
 
 class HexPlaneField(FactorisedField):
     """HexPlane field; see the module docstring for the maths.
 
-    >>> f = HexPlaneField(rank=2, resolution_init=(4, 4, 4, 4), resolution_final=(8, 8, 8, 6))
+    Args:
+        rank: components ``R`` per output feature.
+        resolution: vertices ``(N, N, N, N_t)``; the spatial axes must agree.
+        spacetime_layout: ``"authors"`` (space ``N_t``, time ``N`` vertices in the
+            space-time planes) or ``"swapped"``.
+        init_gain: factors start as ``N(0, (init_gain / R)²)``.
+        seed: initialisation seed.
+
+    >>> import torch
+    >>> f = HexPlaneField(rank=2, resolution=(8, 8, 8, 6))
     >>> sigma, rgb = f(torch.zeros(5, 3), torch.full((5, 1), 0.5))
-    >>> tuple(sigma.shape), tuple(rgb.shape), len(f.grids.factors)
-    ((5,), (5, 3), 6)
+    >>> tuple(sigma.shape), tuple(rgb.shape), [tuple(p.shape[1:]) for p in f.grids.factors][3:6]
+    ((5,), (5, 3), [(8, 6), (8, 6), (8, 6)])
     """
 
-    def __init__(self, rank: int = 8, resolution_init: Sequence[int] = (16, 16, 16, 16),
-                 resolution_final: Sequence[int] = (64, 64, 64, 24), n_growth: int = 5,
-                 growth_until: float = 0.2, init_scale: float = 0.1,
-                 tv_space: float = 1e-4, tv_time: float = 1e-3,
-                 decoder: Literal["linear", "mlp"] = "linear", decoder_hidden: int = 64,
-                 decoder_lr_scale: float = 0.1, density_shift: float = 0.0,
-                 density_activation: DensityActivation = "trunc_exp", bound: float = 1.0,
-                 seed: int = 0):
-        axes = [s for s, _ in PAIRS] + [t for _, t in PAIRS]
-        init = [(0.0, init_scale)] * 3 + [(1.0, 1e-2)] * 3
-        super().__init__(axes, init, rank, 3 * rank, resolution_init, resolution_final,
-                         n_growth, growth_until, decoder, decoder_hidden, decoder_lr_scale,
-                         density_shift, density_activation, bound, seed)
-        self.tv_space = tv_space
-        self.tv_time = tv_time
+    def __init__(self, rank: int = 8, resolution: Sequence[int] = (500, 500, 500, 24),
+                 spacetime_layout: str = "authors", init_gain: float = 1.0, seed: int = 0):
+        if spacetime_layout not in ("authors", "swapped"):
+            raise InputError("conf/model", "spacetime_layout", "authors or swapped",
+                             spacetime_layout)
+        self.spacetime_layout = spacetime_layout
+        axes = ([s for s, _, _ in TERMS] + [st for _, st, _ in TERMS]
+                + [(line,) for _, _, line in TERMS])
+        plan = GrowthPlan(tuple(resolution), tuple(resolution), 1, 0)
+        super().__init__(axes, [True] * 6 + [False] * 3, rank, plan, init_gain, seed)
 
-    def components(self, samples: list[Tensor]) -> tuple[Tensor, Tensor]:
-        """Pair products ``g_p = P_S * P_T`` (``[2R, N]``) -> (density, appearance) ``[3R, N]``."""
-        r = self.rank
-        g = [samples[p] * samples[p + 3] for p in range(3)]
-        return torch.cat([x[:r] for x in g]), torch.cat([x[r:] for x in g])
+    def shapes(self, resolution: Sequence[int]) -> list[tuple[int, ...]]:
+        """Three ``[N, N]`` planes, three space-time planes, three ``[N]`` lines."""
+        n, n_t = int(resolution[0]), int(resolution[3])
+        if not resolution[0] == resolution[1] == resolution[2]:
+            raise InputError("conf/model", "resolution", "the same N along x, y and z",
+                             list(resolution))
+        spacetime = (n, n_t) if self.spacetime_layout == "authors" else (n_t, n)
+        return [(n, n)] * 3 + [spacetime] * 3 + [(n,)] * 3
 
-    def regularization(self) -> Tensor:
-        """TV along space at ``tv_space``, along time at ``tv_time`` (module docstring).
+    @property
+    def resolution(self) -> tuple[int, ...]:
+        n = self.grids.shapes[0][0]
+        st = self.grids.shapes[3]
+        return (n, n, n, st[1] if self.spacetime_layout == "authors" else st[0])
 
-        Space-time planes are ``[2R, R_space, R_t]``: dim 1 is space, dim 2 is time.
-        """
-        f = self.grids.factors
-        space = sum(total_variation(f[p]) for p in range(3))
-        space = space + sum(total_variation(f[p + 3], dims=(1,)) for p in range(3))
-        time = sum(total_variation(f[p + 3], dims=(2,)) for p in range(3))
-        return self.tv_space * space + self.tv_time * time
+    def combine(self, samples: list[Tensor]) -> Tensor:
+        """``Σ_k P_space,k · P_spacetime,k · v_k`` per channel."""
+        return sum(samples[k] * samples[k + 3] * samples[k + 6] for k in range(3))

@@ -1,41 +1,47 @@
 """Instant-NGP style 4D multiresolution hash grid over (x, y, z, t), pure PyTorch.
 
-Level ``l`` has resolution ``R_l = floor(base * scale^l)`` and vertices ``i / R_l``,
-``i = 0..R_l`` per axis of ``u = (c + 1) / 2 in [0, 1]^4`` (``c`` from
-:func:`~baselines.grids.normalize_xyzt`; ``u`` is clamped to the box). A vertex
-``v in {0..R_l}^4`` indexes the level's table of ``T_l`` entries by
+Level ``l`` has resolution ``R_l = floor(base * scale^l)``; axis ``k`` of it has
+``R_{l,k} = floor(R_l · a_k)`` cells, vertices ``i / R_{l,k}``, ``i = 0..R_{l,k}``, over
+``u_k in [0, 1]`` (``u`` is clamped to the box). A vertex ``v`` indexes the level's table
+of ``T_l`` entries by
 
-- dense indexing ``v_0 + (R+1) v_1 + (R+1)^2 v_2 + (R+1)^3 v_3`` when ``(R+1)^4 <= T``
-  (``T_l = (R+1)^4``), otherwise
+- dense indexing ``v_0 + (R_0+1) v_1 + (R_0+1)(R_1+1) v_2 + …`` when
+  ``prod_k (R_{l,k}+1) <= T`` (``T_l`` = that product), otherwise
 - spatial hashing ``(v_0 pi_0 XOR v_1 pi_1 XOR v_2 pi_2 XOR v_3 pi_3) mod T`` with
   ``pi = (1, 2654435761, 805459861, 3674653429)``, in int64 (products < 2^43: no
   overflow), masked by ``T - 1`` (``T = 2^log2_table_size``) per axis before the XOR
   (the low bits of a XOR are the XOR of the low bits), then combined in int32.
 
 The level's feature is the quadrilinear interpolation over the 16 corners,
-``sum_c prod_k w_k(c) F_l[idx(c)]`` with ``w_k = u_k R - i_k`` or ``1 - (u_k R - i_k)``.
+``sum_c prod_k w_k(c) F_l[idx(c)]`` with ``w_k = u_k R_{l,k} - i_k`` or its complement.
 All levels share one flat table with per-level offsets; the 16 corners and all levels
 of one kind (dense / hashed) are computed at once, then gathered with ``embedding_bag``
 (weighted sum of 16 rows) and a hand-written ``index_add_`` backward; ``compile=True``
 runs the index/weight computation through ``torch.compile``. Gradients flow to the table
 and the MLPs, not to the input coordinates (no loss of the method needs them).
 
-Decoder (:class:`~baselines.heads.GeoColourMLP`): density MLP 16 -> 1 + 10, colour MLP
-64 x 2 -> 3. Schedule: the clipping cylinder is annealed over the first third of training.
+The field (:class:`NGPField`) feeds the grid as the authors' code does: their
+tiny-cuda-nn grid expects coordinates in ``[0, 1]`` but receives the raw ``x, y, z in
+[-1, 1]`` and ``t in [0, 1]`` (the rescale in their ``TCNNNet`` indexes rows, not
+columns), so space is resolved with twice the configured cells per unit: here
+``u = ((x, y, z) + 1) / 2, t`` with axis factors ``a = (2, 2, 2, 1)``. Decoder:
+:class:`~baselines.heads.NGPDecoder` (bias-free, as tiny-cuda-nn's). Schedule: the
+clipping cylinder's density mask grows from 0 to its full radius over the first
+``anneal_steps`` steps (10⁴ in the paper).
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from baselines.grids import normalize_xyzt
-from baselines.heads import GeoColourMLP
+from baselines.heads import NGPDecoder
 from baselines.schedules import CylinderAnneal
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
@@ -70,6 +76,7 @@ class HashEncoding(nn.Module):
         base_resolution, per_level_scale: ``R_l = floor(base * scale^l)``.
         init_scale: table initialised uniform in ``[-init_scale, init_scale]``.
         seed: initialisation seed.
+        axis_scale: factors ``a_k`` of the cells per axis (default all 1).
 
     >>> enc = HashEncoding(n_levels=2, log2_table_size=9, base_resolution=2)
     >>> enc.resolutions, enc.dense, enc(torch.rand(3, 4)).shape
@@ -78,7 +85,8 @@ class HashEncoding(nn.Module):
 
     def __init__(self, n_dims: int = 4, n_levels: int = 8, n_features: int = 2,
                  log2_table_size: int = 19, base_resolution: int = 8,
-                 per_level_scale: float = 2.0, init_scale: float = 1e-4, seed: int = 0):
+                 per_level_scale: float = 2.0, init_scale: float = 1e-4, seed: int = 0,
+                 axis_scale: Sequence[float] | None = None):
         super().__init__()
         if not (1 <= n_dims <= len(PRIMES) and n_levels >= 1 and 1 <= log2_table_size <= 30
                 and per_level_scale >= 1.0 and base_resolution >= 1):
@@ -89,9 +97,15 @@ class HashEncoding(nn.Module):
         self.table_size = 2**log2_table_size
         self.resolutions = [int(math.floor(base_resolution * per_level_scale**lvl))
                             for lvl in range(n_levels)]
-        self.dense = [(r + 1) ** n_dims <= self.table_size for r in self.resolutions]
-        sizes = [(r + 1) ** n_dims if d else self.table_size
-                 for r, d in zip(self.resolutions, self.dense)]
+        scale = [1.0] * n_dims if axis_scale is None else [float(a) for a in axis_scale]
+        if len(scale) != n_dims or min(scale) <= 0:
+            raise InputError("conf/model", "axis_scale", f"{n_dims} positive factors", scale)
+        self.axis_resolutions = [tuple(max(1, int(math.floor(r * a + 1e-9))) for a in scale)
+                                 for r in self.resolutions]
+        self.dense = [math.prod(k + 1 for k in res) <= self.table_size
+                      for res in self.axis_resolutions]
+        sizes = [math.prod(k + 1 for k in res) if d else self.table_size
+                 for res, d in zip(self.axis_resolutions, self.dense)]
         self.offsets = [0, *itertools.accumulate(sizes)]
         if self.offsets[-1] >= 2**31:
             raise InputError("conf/model", "hash grid", "fewer than 2^31 table rows in all",
@@ -104,9 +118,11 @@ class HashEncoding(nn.Module):
         # per-level constants for the vectorised paths (buffers follow .to(device))
         for kind, sel in (("dense", True), ("hash", False)):
             lv = [lvl for lvl in range(n_levels) if self.dense[lvl] == sel]
-            res = torch.tensor([self.resolutions[lvl] for lvl in lv], dtype=torch.int64)
-            if sel:  # strides (R+1)^k per level and axis
-                mult = (res[:, None] + 1) ** torch.arange(n_dims)[None, :]
+            res = torch.tensor([self.axis_resolutions[lvl] for lvl in lv],
+                               dtype=torch.int64).reshape(len(lv), n_dims)
+            if sel:  # strides prod_{j<k} (R_j+1) per level and axis
+                ones = torch.ones(len(lv), 1, dtype=torch.int64)
+                mult = torch.cat([ones, (res[:, :-1] + 1).cumprod(1)], dim=1)
             else:
                 mult = torch.tensor(PRIMES[:n_dims], dtype=torch.int64).expand(len(lv), -1)
             self.register_buffer(f"{kind}_levels", torch.tensor(lv, dtype=torch.int64), False)
@@ -127,13 +143,13 @@ class HashEncoding(nn.Module):
             has offset bit ``b_k = (c >> k) & 1`` along axis ``k``.
         """
         res, mult = getattr(self, f"{kind}_res"), getattr(self, f"{kind}_mult")
-        pos = u.clamp(0.0, 1.0)[:, None, :] * res[None, :, None].to(u.dtype)  # [N, Lk, D]
-        i0 = pos.floor().long().clamp(max=res[None, :, None] - 1)
+        pos = u.clamp(0.0, 1.0)[:, None, :] * res[None].to(u.dtype)  # [N, Lk, D]
+        i0 = torch.minimum(pos.floor().long(), res[None] - 1)
         frac = pos - i0.to(pos.dtype)
         v = torch.stack([i0, i0 + 1], dim=-1) * mult[None, :, :, None]  # [N, Lk, D, 2] int64
         if kind == "hash":  # low bits of a XOR are the XOR of low bits: mask before combining
             v = v & (self.table_size - 1)
-        v = v.int()  # < T <= 2^30 per axis term (dense: sum < (R+1)^D <= T): int32 is exact
+        v = v.int()  # < T <= 2^30 per axis term (dense: sum < prod (R_k+1) <= T): int32 exact
         w = torch.stack([1 - frac, frac], dim=-1)
         idx, wt = v[:, :, 0], w[:, :, 0]
         for k in range(1, self.n_dims):  # corner c = b_k 2^k + (lower bits)
@@ -171,15 +187,17 @@ def hash_encode_reference(enc: HashEncoding, u: Tensor) -> Tensor:
     levels and corners, the index written out per corner. Same table, same output."""
     out = []
     uc = u.float().clamp(0.0, 1.0)
-    for lvl, r in enumerate(enc.resolutions):
+    for lvl, res in enumerate(enc.axis_resolutions):
+        r = torch.tensor(res, dtype=uc.dtype)
         pos = uc * r
-        i0 = pos.floor().long().clamp(max=r - 1)
+        i0 = torch.minimum(pos.floor().long(), r.long() - 1)
         frac = pos - i0
         acc = torch.zeros(u.shape[0], enc.n_features, dtype=enc.table.dtype)
         for corner in itertools.product((0, 1), repeat=enc.n_dims):
             vert = [i0[:, k] + b for k, b in enumerate(corner)]
             if enc.dense[lvl]:
-                row = sum(vert[k] * (r + 1) ** k for k in range(enc.n_dims))
+                row = sum(vert[k] * math.prod(res[j] + 1 for j in range(k))
+                          for k in range(enc.n_dims))
             else:
                 row = torch.zeros_like(vert[0])
                 for k in range(enc.n_dims):
@@ -194,16 +212,18 @@ def hash_encode_reference(enc: HashEncoding, u: Tensor) -> Tensor:
 
 
 class NGPField(Field):
-    """NGP backbone: 4D hash encoding of ``(x, y, z, t)`` + :class:`GeoColourMLP`.
+    """NGP backbone: 4D hash encoding of ``(x, y, z, t)`` + :class:`NGPDecoder`.
 
     Args:
         n_levels, n_features, log2_table_size, base_resolution, per_level_scale,
             init_scale: see :class:`HashEncoding` (paper: 8, 2, 19, 8, 2.0, 1e-4).
         density_hidden, geo_features, colour_hidden, colour_layers: decoder sizes
             (paper: 16, 10, 64, 2).
-        anneal_fraction: clipping cylinder grows from 0 to 1 over this fraction of training.
-        compile: run the encoder through ``torch.compile``.
-        bound: world box half-size mapped to the grid.
+        space_scale: cells per unit of space relative to time (2: the authors' raw
+            ``[-1, 1]`` coordinates, module docstring; 1: space mapped to the grid's box).
+        anneal_steps: the cylinder's density mask grows from 0 to 1 over these steps
+            (0: none).
+        compile: run the encoder's index computation through ``torch.compile``.
         seed: initialisation seed (table and MLPs).
 
     >>> f = NGPField(log2_table_size=12)
@@ -214,25 +234,24 @@ class NGPField(Field):
     def __init__(self, n_levels: int = 8, n_features: int = 2, log2_table_size: int = 19,
                  base_resolution: int = 8, per_level_scale: float = 2.0,
                  init_scale: float = 1e-4, density_hidden: int = 16, geo_features: int = 10,
-                 colour_hidden: int = 64, colour_layers: int = 2,
-                 anneal_fraction: float = 1.0 / 3.0, compile: bool = False,
-                 bound: float = 1.0, seed: int = 0):
+                 colour_hidden: int = 64, colour_layers: int = 2, space_scale: float = 2.0,
+                 anneal_steps: int = 10000, compile: bool = False, seed: int = 0):
         super().__init__()
         self.encoding = HashEncoding(4, n_levels, n_features, log2_table_size,
-                                     base_resolution, per_level_scale, init_scale, seed)
+                                     base_resolution, per_level_scale, init_scale, seed,
+                                     axis_scale=(space_scale,) * 3 + (1.0,))
         self.encoding.use_compiled = compile
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            self.decoder = GeoColourMLP(n_levels * n_features, density_hidden, geo_features,
-                                        colour_hidden, colour_layers)
-        self.anneal_fraction = anneal_fraction
-        self.bound = bound
+            self.decoder = NGPDecoder(n_levels * n_features, density_hidden, geo_features,
+                                      colour_hidden, colour_layers)
+        self.anneal_steps = int(anneal_steps)
 
     def forward(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
         """``xyz [N, 3], t [N, 1] -> (sigma [N], rgb [N, 3])``."""
-        u = (normalize_xyzt(xyz, t, self.bound) + 1.0) * 0.5
+        u = torch.cat([(xyz + 1.0) * 0.5, t.reshape(-1, 1).to(xyz.dtype)], dim=-1)
         return self.decoder(self.encoding(u))
 
     def callbacks(self) -> list[Any]:
-        """Clipping-cylinder annealing over the first ``anneal_fraction`` of training."""
-        return [CylinderAnneal(self.anneal_fraction)] if self.anneal_fraction > 0 else []
+        """The cylinder's density mask annealed over the first ``anneal_steps`` steps."""
+        return [CylinderAnneal(self.anneal_steps)] if self.anneal_steps > 0 else []

@@ -1,10 +1,11 @@
 """Backbone schedules as Lightning callbacks: grid growth and cylinder annealing.
 
-Both are expressed as fractions of the run (``trainer.max_steps``, or the estimated
-number of optimiser steps for epoch-based runs), so the same preset scales from a
-300-step CPU run to the paper's 10^4-3*10^4 iterations. Both are *stateless*: the
-target (resolution, clip scale) is a function of ``trainer.global_step``, so a run
-resumed from a checkpoint continues the schedule exactly.
+Both are written in training steps, as the authors' code runs them (the growth over its
+first ``steps`` steps, the NGP cylinder over the first 10⁴); a config may compress them
+for short runs (``trainer.schedule=compressed``, see :mod:`eventrecon.config`). Both are
+*stateless*: the target (resolution, clip scale) is a function of
+``trainer.global_step``, so a run resumed from a checkpoint continues the schedule
+exactly.
 """
 
 from __future__ import annotations
@@ -21,52 +22,46 @@ from baselines.grids import geometric_resolutions
 log = logging.getLogger(__name__)
 
 
-def total_steps(trainer: pl.Trainer) -> int:
-    """The run's number of optimiser steps: ``max_steps`` if set, else Lightning's estimate."""
-    if trainer.max_steps is not None and trainer.max_steps > 0:
-        return int(trainer.max_steps)
-    return int(trainer.estimated_stepping_batches)
-
-
 @dataclass(frozen=True)
 class GrowthPlan:
-    """Geometric growth of a grid from ``start`` to ``end`` in ``n_growth`` upsamplings.
+    """Geometric growth of a grid from ``start`` to ``end`` in ``n_stages`` stages.
 
-    Upsampling ``k = 1..K`` happens at step ``s_k = round(k / K * until * total)``; after
-    it the per-axis resolution is ``round(start * (end / start)^(k / K))``.
+    Stage ``k`` (resolution ``geometric_resolutions(start, end, n_stages)[k]``) is used
+    from step ``k · steps / n_stages``: the stage at step ``s`` is
+    ``min(n_stages − 1, s · n_stages // steps)``, the authors' rule (their TensoRF-CP
+    grows from 16 to 500 in 10 stages over 10⁴ steps). ``n_stages = 1`` or ``steps = 0``:
+    the final resolution from the start.
 
-    >>> GrowthPlan((16, 16), (64, 24), 2, 0.5).resolution_at(50, 100)
-    (64, 24)
-    >>> GrowthPlan((16, 16), (64, 24), 2, 0.5).resolution_at(49, 100)
-    (32, 20)
+    >>> plan = GrowthPlan((16, 16), (500, 24), 10, 10000)
+    >>> plan.resolution_at(0), plan.resolution_at(999), plan.resolution_at(1000)
+    ((16, 16), (16, 16), (23, 16))
+    >>> plan.resolution_at(9000), plan.growth_steps()[:2]
+    ((500, 24), [1000, 2000])
     """
 
     start: tuple[int, ...]
     end: tuple[int, ...]
-    n_growth: int
-    until: float
+    n_stages: int
+    steps: int
 
-    def steps(self, total: int) -> list[int]:
-        """Training steps at which the grid is upsampled.
+    def stage_at(self, step: int) -> int:
+        """Index of the stage used at training step ``step``."""
+        if self.n_stages <= 1 or self.steps <= 0:
+            return max(self.n_stages - 1, 0)
+        return min(self.n_stages - 1, int(step) * self.n_stages // self.steps)
 
-        ``s_k = round(k / K · until · total)``, at most ``total − 1`` so that the final
-        resolution is always reached (``until = 1`` grows until the last step).
+    def resolution_at(self, step: int) -> tuple[int, ...]:
+        """Per-axis resolution the grid must have when training step ``step`` starts."""
+        return geometric_resolutions(self.start, self.end, self.n_stages)[self.stage_at(step)]
 
-        >>> GrowthPlan((16,), (64,), 2, 1.0).steps(100)
-        [50, 99]
-        """
-        k_max = self.n_growth
-        return [min(int(round(k / k_max * self.until * total)), max(total - 1, 0))
-                for k in range(1, k_max + 1)]
-
-    def resolution_at(self, step: int, total: int) -> tuple[int, ...]:
-        """Resolution the grid must have when training step ``step`` starts."""
-        k = sum(s <= step for s in self.steps(total))
-        return geometric_resolutions(self.start, self.end, self.n_growth)[k]
+    def growth_steps(self) -> list[int]:
+        """Steps at which the resolution changes."""
+        return [s for s in range(1, max(self.steps, 1) + 1)
+                if self.stage_at(s) != self.stage_at(s - 1)]
 
     @property
     def initial(self) -> tuple[int, ...]:
-        return tuple(self.start) if self.n_growth > 0 else tuple(self.end)
+        return self.resolution_at(0)
 
 
 class Growable(Protocol):
@@ -81,10 +76,11 @@ class GridGrowth(pl.Callback):
     """Upsample a field's grids on schedule, then rebuild the optimiser.
 
     At the start of each training batch the target resolution is
-    ``plan.resolution_at(global_step, total_steps)``; if the field differs it calls
+    ``plan.resolution_at(global_step)``; if the field differs it calls
     ``field.upsample(target)`` (new Parameters) and ``trainer.strategy.setup_optimizers``,
     which calls the module's ``configure_optimizers`` again so the optimiser holds the
-    new parameters (Adam moments restart, as in TensoRF).
+    new parameters (Adam moments restart; the authors' code activates a fresh parameter
+    per stage, with fresh moments too).
 
     Limitation: under DDP the wrapped model is not re-wrapped after growth.
     """
@@ -96,7 +92,7 @@ class GridGrowth(pl.Callback):
 
     def on_train_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule,
                              batch: Any, batch_idx: int) -> None:
-        target = self.plan.resolution_at(trainer.global_step, total_steps(trainer))
+        target = self.plan.resolution_at(trainer.global_step)
         if tuple(target) != tuple(self.field.resolution):
             log.info("step %d: grid %s -> %s", trainer.global_step, self.field.resolution, target)
             self.field.upsample(target)
@@ -104,23 +100,27 @@ class GridGrowth(pl.Callback):
 
 
 class CylinderAnneal(pl.Callback):
-    """Anneal the clipping cylinder: ``renderer.clip_scale = min(1, step / (fraction * total))``.
+    """Anneal the clipping cylinder: ``renderer.clip_scale = min(1, step / steps)``.
 
-    The paper grows the NGP cylinder radius from 0 to 100 % over the first 10^4 of
-    3*10^4 iterations (``fraction = 1/3``); the renderer reads ``clip_scale``.
+    The NGP baseline grows the radius inside which density is kept from 0 to 100 % over
+    the first 10⁴ steps (supplementary Sec. 10); as in the authors' code only the density
+    is masked, the samples still span the whole cylinder (the renderer reads
+    ``clip_scale`` in its density mask only).
+
+    >>> CylinderAnneal(10000).scale(2500)
+    0.25
     """
 
-    def __init__(self, fraction: float = 1.0 / 3.0):
+    def __init__(self, steps: int = 10000):
         super().__init__()
-        self.fraction = fraction
+        self.steps = int(steps)
 
-    def scale(self, step: int, total: int) -> float:
-        """``min(1, step / (fraction * total))``; 1 when ``fraction <= 0``."""
-        n = self.fraction * total
-        return 1.0 if n <= 0 else min(1.0, step / n)
+    def scale(self, step: int) -> float:
+        """``min(1, step / steps)``; 1 when ``steps <= 0``."""
+        return 1.0 if self.steps <= 0 else min(1.0, step / self.steps)
 
     def on_train_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule,
                              batch: Any, batch_idx: int) -> None:
-        s = self.scale(trainer.global_step, total_steps(trainer))
+        s = self.scale(trainer.global_step)
         pl_module.renderer.clip_scale = s
         pl_module.log("clip_scale", s, on_step=True, on_epoch=False)

@@ -11,7 +11,7 @@ import os
 import pytest
 import torch
 
-import eventrecon  # noqa: F401 - registers the config resolvers (${of_run:...})
+import eventrecon  # noqa: F401 - registers the config resolvers (${paper_steps:...})
 
 torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
@@ -41,16 +42,36 @@ def test_defaults():
     loss = cfg.loss
     assert (loss.w_event, loss.w_acc, loss.w_rgb, loss.lam_sparsity) == (1.0, 1.0, 0.01, 0.01)
     assert cfg.data.neg_ratio == 0.9
-    # schedules are fractions of the run: 2500 CPU steps -> 67 annealing, 500 ramp steps
-    schedule = (cfg.trainer.max_steps, cfg.model.anneal_steps, cfg.loss.sparsity_ramp)
-    assert schedule == (2500, 67, 500)
-    # trainer=cpu sizes the NeRF MLP for 2 cores (conf/sizing/cpu_nerf.yaml)
-    assert (cfg.model.depth, cfg.model.width, cfg.model.optim.lr) == (4, 128, 1e-3)
+    # schedules are in the paper's steps at every scale by default
+    schedule = (cfg.trainer.schedule, cfg.model.anneal_steps, cfg.loss.sparsity_ramp)
+    assert schedule == ("paper", 4000, 30000)
+    # trainer=cpu sizes the NeRF MLP for 2 cores (conf/sizing/cpu_nerf.yaml), the authors' lr
+    assert (cfg.model.depth, cfg.model.width, cfg.model.optim.lr) == (4, 128, 1e-4)
+
+
+def test_compressed_schedules_are_a_named_option_and_the_ramp_is_never_compressed():
+    cpu = _compose("scale=cpu")
+    assert (cpu.trainer.max_steps, cpu.trainer.schedule) == (1000, "compressed")
+    assert cpu.model.anneal_steps == round(4000 * 1000 / 150000)  # 27
+    assert _compose("scale=cpu", "model=ngp").model.anneal_steps == 67  # 1e4 of 150k
+    assert _compose("scale=cpu", "model=tensorf_cp").model.growth_steps == 67
+    assert cpu.loss.sparsity_ramp == 30000
+    from eventrecon.losses import sparsity_weight
+    assert sparsity_weight(1000, cpu.loss.lam_sparsity, cpu.loss.sparsity_ramp) == (
+        pytest.approx(1e-2 * (1 - math.exp(-1000 / 30000)), rel=1e-12))
+    from eventrecon.build import build_field
+    from eventrecon.errors import InputError
+
+    with pytest.raises(InputError, match="trainer.schedule: expected paper or compressed, "
+                                         "got squeezed$"):
+        build_field(_compose("trainer.schedule=squeezed").model)
 
 
 def test_sizing_applies_only_to_its_trainer_and_model():
     ngp = _compose("model=ngp")
     assert ngp.model.optim.lr == 1e-3 and "depth" not in ngp.model
+    assert ngp.model.log2_table_size == 17  # conf/sizing/cpu_ngp.yaml
+    assert _compose("model=ngp", "trainer=paper").model.log2_table_size == 19
     override = _compose("model.depth=8", "model.width=256")  # the command line still wins
     assert (override.model.depth, override.model.width) == (8, 256)
 

@@ -101,7 +101,8 @@ def test_nerf_field_architecture_and_parameter_count() -> None:
     widths = [layer.in_features for layer in f.layers]
     assert widths == [in_dim, 256, 256, 256, 256, 256 + in_dim, 256, 256]
     expected = ((in_dim + 1) * 256 + 7 * 257 * 256 + in_dim * 256  # trunk incl. skip inputs
-                + 257 * 1 + 257 * 128 + 129 * 3)                 # density + colour heads
+                + 257 * 1                                        # density head
+                + 257 * 256 + 257 * 128 + 129 * 3)               # colour 256 -> 128 -> 3
     assert sum(p.numel() for p in f.parameters()) == expected
     assert isinstance(f, Field)
     sigma, rgb = f(torch.rand(100, 3) * 2 - 1, torch.rand(100, 1))
@@ -113,15 +114,41 @@ def test_nerf_field_architecture_and_parameter_count() -> None:
         NeRFField(depth=0)
 
 
+def test_nerf_field_is_the_authors_layers_and_initialisation() -> None:
+    """2·ReLU, the skip input first, density head xavier (gain 1) with bias ~ N(0, 1) and no
+    shift, colour remap linear, hidden colour layer initialised as with 283 inputs."""
+    torch.manual_seed(0)
+    biases = torch.stack([NeRFField(depth=2, width=64, skip=-1).density.bias for _ in range(400)])
+    assert abs(biases.mean().item()) < 0.15 and abs(biases.std().item() - 1.0) < 0.1
+    f = NeRFField(depth=3, width=32, skip=0, pos_bands=2, time_bands=1, remap_width=16,
+                  colour_width=8)
+    w = f.density.weight
+    xavier = math.sqrt(6.0 / (32 + 1))
+    assert w.abs().max().item() <= xavier and w.abs().max().item() > 0.5 * xavier
+    bound = 1.0 / math.sqrt(16 + 27)
+    assert f.colour_hidden.weight.abs().max().item() <= bound
+    # the forward pass written out: 2·relu, [encoding, h] after layer `skip`, linear remap
+    x, t = torch.rand(7, 3) * 2 - 1, torch.rand(7, 1)
+    enc = f.encode(x, t)
+    h0 = 2 * torch.relu(f.layers[0](enc))
+    h1 = 2 * torch.relu(f.layers[1](torch.cat([enc, h0], -1)))
+    h2 = 2 * torch.relu(f.layers[2](h1))
+    sigma = torch.nn.functional.softplus(f.density(h2)).squeeze(-1)
+    rgb = torch.sigmoid(f.colour_out(2 * torch.relu(f.colour_hidden(f.colour_remap(h2)))))
+    got = f(x, t)
+    assert torch.allclose(got[0], sigma, atol=1e-6) and torch.allclose(got[1], rgb, atol=1e-6)
+
+
 def test_config_instantiates_the_field_and_carries_the_optimiser() -> None:
     from eventrecon.build import build_field
 
     cfg = OmegaConf.load(CONF)
     assert open(CONF).readline().startswith("# python train.py model=nerf")
     assert cfg.optim.lr == 1e-4 and cfg.optim.weight_decay == 0.1
-    # the model file inside a run config: its schedule is a fraction of trainer.max_steps
+    # the model file inside a run config: its schedule is in the paper's steps
     small = OmegaConf.merge(cfg, dict(depth=2, width=16, pos_bands=2, time_bands=1))
-    run = OmegaConf.create({"trainer": {"max_steps": 150_000}, "model": small})
+    run = OmegaConf.create({"trainer": {"max_steps": 1000, "schedule": "paper",
+                                        "paper_steps": 150_000}, "model": small})
     f = build_field(run.model)
     assert isinstance(f, NeRFField) and len(f.layers) == 2
     assert f.pos_enc.anneal_steps == f.time_enc.anneal_steps == 4000  # the paper's value

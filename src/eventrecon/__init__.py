@@ -21,4 +21,4 @@ TIME_SPAN: float = 1000.0
 
 from eventrecon.config import register_resolvers as _register_resolvers  # noqa: E402
 
-_register_resolvers()  # ${of_run:...} in conf/ resolves wherever eventrecon is imported
+_register_resolvers()  # ${paper_steps:...} in conf/ resolves wherever eventrecon is imported

@@ -1,17 +1,28 @@
 """OmegaConf resolvers used by the config tree in ``conf/``.
 
-``${of_run:f}`` — a schedule length written as a fraction ``f`` of the run: it resolves to
-``round(f · trainer.max_steps)`` steps. The paper's schedules are given in iterations of
-its 150k-step run (band annealing over 4000, the sparsity ramp's 30000); written as
-fractions (``${of_run:0.0266667}``, ``${of_run:0.2}``) they are exactly the paper's
-values under ``trainer=paper`` and keep their shape in a 1500-step CPU run, where 4000
-absolute steps would leave most positional-encoding bands switched off.
+``${paper_steps:N}`` — a schedule of the authors' code, written in their steps: band
+annealing over 4000, the NGP cylinder over 10⁴, TensoRF-CP's growth over 10⁴, out of
+runs of ``trainer.paper_steps`` = 150 000 steps. It resolves to
+
+- ``N`` with ``trainer.schedule: paper`` (the default at every scale: a short run is the
+  first steps of the paper's run);
+- ``round(N · trainer.max_steps / trainer.paper_steps)`` with
+  ``trainer.schedule: compressed``, a named option for short CPU runs (``scale=cpu``
+  uses it; the tables footnote it): the warm-up schedules keep their share of the run.
+
+The sparsity ramp's time constant (30 000 steps) is written as a plain number: it is not
+compressed, because a compressed ramp makes ``L_sparsity`` two orders of magnitude
+stronger per step and the runs without ``L_acc`` collapse to the empty field.
 
 >>> from omegaconf import OmegaConf
 >>> register_resolvers()
->>> cfg = OmegaConf.create({"trainer": {"max_steps": 150000}, "ramp": "${of_run:0.2}"})
->>> cfg.ramp
-30000
+>>> cfg = OmegaConf.create({"trainer": {"max_steps": 1500, "paper_steps": 150000,
+...                                     "schedule": "paper"}, "a": "${paper_steps:4000}"})
+>>> cfg.a
+4000
+>>> cfg.trainer.schedule = "compressed"
+>>> cfg.a
+40
 """
 
 from __future__ import annotations
@@ -21,24 +32,43 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from eventrecon.errors import InputError
+from eventrecon.naming import dataset_name
 
-__all__ = ["register_resolvers", "of_run"]
+__all__ = ["register_resolvers", "paper_steps", "run_data_name", "SCHEDULES"]
+
+#: ``trainer.schedule`` values.
+SCHEDULES: tuple[str, ...] = ("paper", "compressed")
 
 
-def of_run(fraction: float, *, _root_: Any) -> int:
-    """``round(fraction · trainer.max_steps)`` of the config ``_root_``."""
+def paper_steps(steps: int, *, _root_: Any) -> int:
+    """``steps`` of the paper's run, as ``trainer.schedule`` says (module docstring)."""
     try:
-        total = int(_root_.trainer.max_steps)
+        trainer = _root_.trainer
+        schedule = str(trainer.get("schedule", "paper"))
+        total, paper = int(trainer.max_steps), int(trainer.get("paper_steps", 150000))
     except Exception:  # noqa: BLE001 - no trainer section: a config outside train.py
         raise InputError("config", "trainer.max_steps",
-                         "an integer (needed by ${of_run:...})", "missing") from None
-    f = float(fraction)
-    if not 0.0 <= f <= 1.0:
-        raise InputError("config", "${of_run:...}", "a fraction of the run in [0, 1]", fraction)
-    return int(round(f * total))
+                         "an integer (needed by ${paper_steps:...})", "missing") from None
+    if schedule not in SCHEDULES:
+        raise InputError("config", "trainer.schedule", " or ".join(SCHEDULES), schedule)
+    n = int(steps)
+    if n < 0:
+        raise InputError("config", "${paper_steps:...}", "a number of steps >= 0", steps)
+    if schedule == "paper" or n == 0:
+        return n
+    return max(1, int(round(n * total / paper)))
+
+
+def run_data_name(*, _root_: Any) -> str:
+    """``${data_name:}``: the run's data name (:func:`eventrecon.naming.dataset_name`),
+    for the output folder."""
+    data, scene = _root_.get("data") or {}, _root_.get("scene") or {}
+    return dataset_name(data.get("root"), scene.get("name"))
 
 
 def register_resolvers() -> None:
-    """Register ``of_run`` (idempotent)."""
-    if not OmegaConf.has_resolver("of_run"):
-        OmegaConf.register_new_resolver("of_run", of_run)
+    """Register ``paper_steps`` and ``data_name`` (idempotent)."""
+    if not OmegaConf.has_resolver("paper_steps"):
+        OmegaConf.register_new_resolver("paper_steps", paper_steps)
+    if not OmegaConf.has_resolver("data_name"):
+        OmegaConf.register_new_resolver("data_name", run_data_name)

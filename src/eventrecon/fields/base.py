@@ -12,6 +12,7 @@ losses and the LightningModule use only this interface and never branch on the c
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -26,7 +27,9 @@ class Field(nn.Module):
     - :meth:`param_groups` — optimiser groups with per-group learning rates;
     - :meth:`callbacks` — Lightning callbacks with the backbone's own schedule
       (frequency annealing, grid growth with optimiser rebuild, cylinder annealing);
-    - :meth:`regularization` — an extra loss term (e.g. total variation), already weighted.
+    - :meth:`regularization` — an extra loss term (e.g. total variation), already weighted;
+    - :meth:`set_scene_box` — the clipping cylinder's bounding box, for fields whose
+      coordinates are normalised to it (the factorised backbones).
     """
 
     def forward(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
@@ -51,6 +54,10 @@ class Field(nn.Module):
 
     def regularization(self) -> Tensor | None:
         """Extra (weighted) loss on the parameters, or ``None``."""
+        return None
+
+    def set_scene_box(self, lo: Sequence[float], hi: Sequence[float]) -> None:
+        """The world box ``[lo, hi]`` (``[3]`` each) the scene lives in; default: unused."""
         return None
 
 

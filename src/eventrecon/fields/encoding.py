@@ -95,7 +95,7 @@ class PositionalEncoding(nn.Module):
         xb = x[:, None, :] * self.freqs[:, None].to(x.dtype)          # [N, L, D]
         feats = torch.cat([torch.sin(xb), torch.cos(xb)], dim=-1)      # [N, L, 2D]
         feats = feats * self.window[:, None].to(x.dtype)
-        return torch.cat([x, feats.reshape(x.shape[0], -1)], dim=-1)
+        return torch.cat([x, feats.reshape(x.shape[0], 2 * self.n_bands * self.in_dim)], dim=-1)
 
     def extra_repr(self) -> str:
         return f"in_dim={self.in_dim}, n_bands={self.n_bands}, anneal_steps={self.anneal_steps}"

@@ -1,29 +1,36 @@
 """The paper's field: a NeRF MLP on encoded (x, y, z, t), no view directions.
 
+As the authors' code builds it (``docs/method.md`` "Network"):
+
 .. math::
     \\mathbf{h}_0 = [\\gamma_{14}(\\mathbf{x}), \\gamma_7(t)],\\quad
-    \\mathbf{h}_{i+1} = \\mathrm{ReLU}(W_i \\mathbf{h}_i' + b_i),\\quad
-    \\mathbf{h}_i' = [\\mathbf{h}_i, \\mathbf{h}_0]\\ \\text{if}\\ i = \\text{skip} + 1
+    \\mathbf{h}_{i+1} = 2\\,\\mathrm{ReLU}(W_i \\mathbf{h}_i' + b_i),\\quad
+    \\mathbf{h}_i' = [\\mathbf{h}_0, \\mathbf{h}_i]\\ \\text{if}\\ i = \\text{skip} + 1
     \\ \\text{else}\\ \\mathbf{h}_i,
 
     \\sigma = \\mathrm{softplus}(w_\\sigma^\\top \\mathbf{h}_{depth} + b_\\sigma +
     \\text{density\\_shift}),\\quad
-    \\mathbf{c} = \\mathrm{sigmoid}(W_2\\,\\mathrm{ReLU}(W_1 \\mathbf{h}_{depth} + b_1) + b_2).
+    \\mathbf{c} = \\mathrm{sigmoid}\\big(W_3\\, 2\\mathrm{ReLU}(W_2 (W_1 \\mathbf{h}_{depth}
+    + b_1) + b_2) + b_3\\big).
 
 ``γ_L`` is :class:`~eventrecon.fields.encoding.PositionalEncoding` (raw input + sin/cos
-at 2^0..2^{L−1}, bands eased in over ``anneal_steps``). The skip follows NeRF's code:
-the input encoding is concatenated to the output of layer ``skip`` (0-based), so with
-depth 8 and skip 4 the sixth linear layer takes ``width + in_dim`` inputs.
-
-Density shift: ``softplus(raw − 1)`` (mip-NeRF's choice, ``density_shift = −1``) makes a
-freshly initialised field semi-transparent (σ ≈ 0.31 per unit length, i.e. roughly a
-quarter of the background hidden across a unit-diameter cylinder), so early renders are
-mostly background, both colour and density receive gradients, and the sparsity term
-starts small.
+at 2^0..2^{L−1}, bands eased in over ``anneal_steps``). The activation is ``2·ReLU``
+(the authors' ``MyReLU``). The skip concatenates the input encoding to the output of
+layer ``skip`` (0-based): with depth 8 and skip 4 the sixth linear layer takes
+``in_dim + width`` inputs. Initialisation: hidden and colour layers PyTorch's default;
+the density head xavier-uniform with gain ``density_init_gain`` (1) and bias drawn from
+``N(0, density_init_gain²)`` — so a fresh field starts with a density that varies
+across space, not a uniform fog; no shift (``density_shift = 0``). The colour branch is
+a linear remap to 256 features, then ``colour_width`` (2·ReLU), then 3 (sigmoid); in the
+authors' network the remap is concatenated with a zeroed view-direction encoding of 27
+features before the hidden colour layer, which changes nothing but that layer's default
+initialisation range (``1/sqrt(fan_in)`` with ``fan_in = 256 + 27``): it is initialised
+with that range here.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -37,6 +44,16 @@ from eventrecon.fields.encoding import BandAnnealing, PositionalEncoding
 __all__ = ["NeRFField"]
 
 
+#: Zeroed view-direction features the authors concatenate before the hidden colour layer
+#: (an Embedder of 3 inputs with 4 bands: 3 + 3·4·2); they set that layer's init range.
+ZEROED_VIEWDIR_FEATURES = 27
+
+
+def _relu2(x: Tensor) -> Tensor:
+    """``2·ReLU(x)``: the authors' activation."""
+    return torch.relu(x) * 2.0
+
+
 class NeRFField(Field):
     """The NeRF MLP of Dynamic EventNeRF (maths in the module docstring).
 
@@ -48,8 +65,10 @@ class NeRFField(Field):
         pos_bands: octaves for position (14: 2^0..2^13).
         time_bands: octaves for time (7: 2^0..2^6).
         anneal_steps: steps of coarse-to-fine band annealing (0: none).
-        colour_width: hidden width of the colour head.
-        density_shift: added to the raw density before softplus.
+        remap_width: width of the colour branch's linear remap (256).
+        colour_width: hidden width of the colour branch (128).
+        density_shift: added to the raw density before softplus (0).
+        density_init_gain: xavier gain and bias standard deviation of the density head (1).
 
     Shapes: ``forward(xyz [N, 3], t [N, 1]) -> (sigma [N], rgb [N, 3])``.
 
@@ -67,11 +86,14 @@ class NeRFField(Field):
         pos_bands: int = 14,
         time_bands: int = 7,
         anneal_steps: int = 4000,
+        remap_width: int = 256,
         colour_width: int = 128,
-        density_shift: float = -1.0,
+        density_shift: float = 0.0,
+        density_init_gain: float = 1.0,
     ) -> None:
         super().__init__()
         for name, value, low in (("depth", depth, 1), ("width", width, 1),
+                                 ("remap_width", remap_width, 1),
                                  ("colour_width", colour_width, 1)):
             if int(value) < low:
                 raise InputError("model", name, f"an integer >= {low}", value)
@@ -84,7 +106,13 @@ class NeRFField(Field):
                               for i in range(1, depth)]
         self.layers = nn.ModuleList(nn.Linear(n, width) for n in dims_in)
         self.density = nn.Linear(width, 1)
-        self.colour_hidden = nn.Linear(width, colour_width)
+        nn.init.xavier_uniform_(self.density.weight, gain=density_init_gain)
+        nn.init.normal_(self.density.bias, mean=0.0, std=density_init_gain)
+        self.colour_remap = nn.Linear(width, remap_width)
+        self.colour_hidden = nn.Linear(remap_width, colour_width)
+        bound = 1.0 / math.sqrt(remap_width + ZEROED_VIEWDIR_FEATURES)
+        nn.init.uniform_(self.colour_hidden.weight, -bound, bound)
+        nn.init.uniform_(self.colour_hidden.bias, -bound, bound)
         self.colour_out = nn.Linear(colour_width, 3)
 
     def set_progress(self, step: float) -> None:
@@ -105,11 +133,11 @@ class NeRFField(Field):
         enc = self.encode(xyz, t)
         h = enc
         for i, layer in enumerate(self.layers):
-            h = torch.relu_(layer(h))
+            h = _relu2(layer(h))
             if i == self.skip:
-                h = torch.cat([h, enc], dim=-1)
+                h = torch.cat([enc, h], dim=-1)
         sigma = F.softplus(self.density(h).squeeze(-1) + self.density_shift)
-        rgb = torch.sigmoid(self.colour_out(torch.relu_(self.colour_hidden(h))))
+        rgb = torch.sigmoid(self.colour_out(_relu2(self.colour_hidden(self.colour_remap(h)))))
         return sigma, rgb
 
     def callbacks(self) -> list[Any]:
