@@ -142,6 +142,15 @@ class Cylinder:
         far = torch.where(hit, hi, zero)
         return near.to(dtype), far.to(dtype), hit
 
+    def box(self) -> tuple[list[float], list[float]]:
+        """The cylinder's bounding box ``([−r, y_min, −r], [r, y_max, r])``.
+
+        >>> Cylinder(0.5, -0.75, 0.25).box()
+        ([-0.5, -0.75, -0.5], [0.5, 0.25, 0.5])
+        """
+        r = self.radius
+        return [-r, self.y_min, -r], [r, self.y_max, r]
+
     def inside(self, xyz: Tensor, radius_scale: float = 1.0, tol: float = 0.0) -> Tensor:
         """Membership of points in the (scaled) cylinder.
 

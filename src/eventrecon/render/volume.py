@@ -27,7 +27,7 @@ autocast.
 from __future__ import annotations
 
 import itertools
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor, nn
@@ -36,6 +36,7 @@ from eventrecon.colour import GREY_LINEAR
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.render.clipping import NO_CLIPPING, Cylinder
+from eventrecon.render.occupancy import OccupancyGrid
 from eventrecon.render.samplers import interval_edges, sample_pdf, stratified
 
 if TYPE_CHECKING:
@@ -111,8 +112,17 @@ class Renderer(nn.Module):
     Rays that miss the clipping volume are not sent to the field (their colour is the
     background); points outside the cylinder get ``σ = 0``.
 
-    The renderer has no parameters. ``clip_scale`` (in [0, 1]) multiplies the cylinder
-    radius; schedules set it through ``pl_module.renderer.clip_scale``.
+    Empty-space skipping (``skip="grid"``): a time-aware :class:`OccupancyGrid` (kept up
+    to date from the field by :class:`~eventrecon.render.occupancy.OccupancyUpdate`)
+    says which samples can hold density; the others get ``σ = 0`` without reaching the
+    field, and so do samples outside the cylinder. The coarse samples are evaluated front
+    to back in ``march_chunks`` groups, and a ray stops once its transmittance is below
+    ``stop_transmittance`` (1e-4); fine samples beyond that point are not evaluated
+    either. ``skip="none"`` evaluates every sample of every ray that hits the cylinder.
+
+    The renderer has no parameters. ``clip_scale`` (in [0, 1]) multiplies the radius of
+    the cylinder outside which density is zero; samples always span the full cylinder
+    (the NGP baseline's annealing sets it through ``pl_module.renderer.clip_scale``).
 
     >>> from eventrecon.fields import NeRFField
     >>> renderer = Renderer(n_coarse=8, n_fine=8)
@@ -125,10 +135,14 @@ class Renderer(nn.Module):
         n_coarse: stratified samples per ray (> 0).
         n_fine: importance samples per ray (0: one level only).
         radius, y_min, y_max: the clipping cylinder (:class:`Cylinder`).
-        clip_scale: initial radius factor.
+        clip_scale: initial radius factor of the density mask.
         chunk: rays per chunk in :meth:`render_image`.
         clipping: ``False`` replaces the cylinder by :data:`~.clipping.NO_CLIPPING`
             (``r = 1``, ``y ∈ [−1, 1]``: the "w/o clipping" ablation).
+        skip: ``"none"`` or ``"grid"`` (empty-space skipping).
+        occupancy: arguments of the :class:`OccupancyGrid` (``skip="grid"``).
+        march_chunks, stop_transmittance: front-to-back groups of coarse samples and the
+            transmittance below which a ray stops (``skip="grid"``).
     """
 
     def __init__(
@@ -141,6 +155,10 @@ class Renderer(nn.Module):
         clip_scale: float = 1.0,
         chunk: int = 8192,
         clipping: bool = True,
+        skip: str = "none",
+        occupancy: dict[str, Any] | None = None,
+        march_chunks: int = 4,
+        stop_transmittance: float = 1e-4,
     ) -> None:
         super().__init__()
         if n_coarse < 1:
@@ -149,36 +167,102 @@ class Renderer(nn.Module):
             raise InputError("renderer", "n_fine", "an integer >= 0", n_fine)
         if chunk < 1:
             raise InputError("renderer", "chunk", "an integer >= 1", chunk)
+        if skip not in ("none", "grid"):
+            raise InputError("config", "render.skip", "none or grid", skip)
         self.n_coarse, self.n_fine, self.chunk = int(n_coarse), int(n_fine), int(chunk)
         self.cylinder = (Cylinder(radius, y_min, y_max) if clipping
                          else Cylinder(**NO_CLIPPING))
         self.clip_scale = float(clip_scale)
+        self.march_chunks = max(1, int(march_chunks))
+        self.stop_transmittance = float(stop_transmittance)
+        self.occupancy = (OccupancyGrid(*self.cylinder.box(), **(occupancy or {}))
+                          if skip == "grid" else None)
 
     def extra_repr(self) -> str:
         return (f"n_coarse={self.n_coarse}, n_fine={self.n_fine}, cylinder={self.cylinder}, "
                 f"clip_scale={self.clip_scale}")
 
-    def _query(self, field: Field, o: Tensor, d: Tensor, t: Tensor, s: Tensor
-               ) -> tuple[Tensor, Tensor]:
-        """Field at ``o + s d`` (``[n, K]`` samples) at time ``t``; σ = 0 outside."""
+    @property
+    def skipping(self) -> bool:
+        """Whether samples are skipped now (``skip="grid"`` and past its start step)."""
+        return self.occupancy is not None and self.occupancy.active
+
+    def masked_density(self, field: Field, x: Tensor, t: Tensor) -> Tensor:
+        """``[N]`` density of ``field`` at ``x [N, 3]``, ``t [N, 1]``, zero outside the full
+        cylinder (what the occupancy grid stores: an annealed ``clip_scale`` masks samples
+        at render time, and must not mark the rest of the cylinder empty for good)."""
+        inside = self.cylinder.inside(x, 1.0, tol=_INSIDE_TOL)
+        return field(x, t)[0] * inside
+
+    def _query(self, field: Field, o: Tensor, d: Tensor, t: Tensor, s: Tensor,
+               keep: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Field at ``o + s d`` (``[n, K]`` samples) at time ``t``; σ = 0 outside the
+        cylinder. With ``keep`` (``[n, K]`` bool) only those samples reach the field; the
+        others are ``σ = 0``, ``rgb = 0``."""
         n, k = s.shape
         pts = o[:, None, :] + s[..., None] * d[:, None, :]
-        sigma, rgb = field(pts.reshape(n * k, 3), t[:, None, :].expand(n, k, 1).reshape(n * k, 1))
         inside = self.cylinder.inside(pts, self.clip_scale, tol=_INSIDE_TOL)
-        return sigma.reshape(n, k) * inside, rgb.reshape(n, k, 3)
+        if keep is None:
+            sigma, rgb = field(pts.reshape(n * k, 3),
+                               t[:, None, :].expand(n, k, 1).reshape(n * k, 1))
+            return sigma.reshape(n, k) * inside, rgb.reshape(n, k, 3)
+        idx = (keep & inside).reshape(-1).nonzero().squeeze(1)
+        tt = t[:, None, :].expand(n, k, 1).reshape(n * k, 1)
+        sig_k, rgb_k = field(pts.reshape(n * k, 3)[idx], tt[idx])
+        sigma = pts.new_zeros(n * k, dtype=sig_k.dtype).index_put((idx,), sig_k)
+        rgb = pts.new_zeros(n * k, 3, dtype=rgb_k.dtype).index_put((idx,), rgb_k)
+        return sigma.reshape(n, k), rgb.reshape(n, k, 3)
+
+    def _occupied(self, o: Tensor, d: Tensor, t: Tensor, s: Tensor) -> Tensor:
+        """``[n, K]`` bool: samples in occupied cells of the grid."""
+        pts = o[:, None, :] + s[..., None] * d[:, None, :]
+        n, k = s.shape
+        return self.occupancy.occupied(pts, t[:, None, :].expand(n, k, 1))
+
+    def _march(self, field: Field, o: Tensor, d: Tensor, t: Tensor, s: Tensor,
+               edges: Tensor) -> tuple[Tensor, Tensor]:
+        """The coarse samples front to back in ``march_chunks`` groups: only occupied
+        samples of rays whose transmittance is still above ``stop_transmittance`` reach the
+        field (``[n, K]`` σ and ``[n, K, 3]`` rgb, zero where skipped)."""
+        n, k = s.shape
+        keep = self._occupied(o, d, t, s)
+        delta = edges.diff(dim=-1).float()
+        tau = torch.zeros(n, device=s.device)
+        sig_parts, rgb_parts, bounds = [], [], torch.linspace(0, k, self.march_chunks + 1)
+        for a, b in zip(bounds[:-1].round().long().tolist(), bounds[1:].round().long().tolist()):
+            if b <= a:
+                continue
+            alive = torch.exp(-tau) > self.stop_transmittance
+            sig, rgb = self._query(field, o, d, t, s[:, a:b], keep[:, a:b] & alive[:, None])
+            tau = tau + (sig.detach().float().clamp(min=0) * delta[:, a:b]).sum(-1)
+            sig_parts.append(sig)
+            rgb_parts.append(rgb)
+        return torch.cat(sig_parts, 1), torch.cat(rgb_parts, 1)
 
     def _render_hit(self, field: Field, o: Tensor, d: Tensor, t: Tensor, bg: Tensor,
                     near: Tensor, far: Tensor, perturb: bool, gen: torch.Generator | None
                     ) -> list[dict[str, Tensor]]:
         """Both levels for rays that all hit the clipping volume."""
         s_c = stratified(near, far, self.n_coarse, perturb, gen)
-        sigma_c, rgb_c = self._query(field, o, d, t, s_c)
         edges_c = interval_edges(s_c, near, far)
+        skipping = self.skipping
+        if skipping:
+            sigma_c, rgb_c = self._march(field, o, d, t, s_c, edges_c)
+        else:
+            sigma_c, rgb_c = self._query(field, o, d, t, s_c)
         levels = [composite(sigma_c, rgb_c, s_c, edges_c, bg)]
         if self.n_fine == 0:
             return levels
         s_f = sample_pdf(edges_c, levels[0]["weights"], self.n_fine, not perturb, gen)
-        sigma_f, rgb_f = self._query(field, o, d, t, s_f)
+        keep_f = None
+        if skipping:  # occupied, and in front of the point where the coarse ray stopped
+            trans = 1.0 - levels[0]["weights"].detach().cumsum(-1)
+            stopped = trans < self.stop_transmittance
+            first = torch.where(stopped.any(-1), stopped.float().argmax(-1),
+                                torch.full_like(near, s_c.shape[1], dtype=torch.long))
+            stop_s = edges_c.gather(1, (first + 1).clamp(max=s_c.shape[1])[:, None])
+            keep_f = self._occupied(o, d, t, s_f) & (s_f <= stop_s)
+        sigma_f, rgb_f = self._query(field, o, d, t, s_f, keep_f)
         s_all, order = torch.sort(torch.cat([s_c, s_f], dim=-1), dim=-1)
         sigma = torch.cat([sigma_c, sigma_f], dim=-1).gather(1, order)
         rgb = torch.cat([rgb_c, rgb_f], dim=-2).gather(1, order[..., None].expand(-1, -1, 3))
@@ -209,7 +293,7 @@ class Renderer(nn.Module):
             raise InputError("renderer", "o/d/t/bg", "shapes [N,3], [N,3], [N,1], [N,3]",
                              f"{tuple(o.shape)}, {tuple(d.shape)}, {tuple(t.shape)}, "
                              f"{tuple(bg.shape)}")
-        near, far, hit = self.cylinder.ray_interval(o, d, self.clip_scale)
+        near, far, hit = self.cylinder.ray_interval(o, d)
         idx = hit.nonzero().squeeze(1)
         if idx.numel() == n:
             return self._render_hit(field, o, d, t, bg, near, far, perturb, gen)

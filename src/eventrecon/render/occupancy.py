@@ -1,0 +1,203 @@
+"""A time-aware occupancy grid: which space-time cells can hold density.
+
+The clipping cylinder's bounding box is divided into ``G³`` cells and the segment's
+normalised time into ``B`` bins. Cell ``(b, i, j, k)`` holds an upper estimate of the
+field's density over its volume and time bin,
+
+.. math:: D_{b,ijk} \\leftarrow \\max\\big(\\gamma\\, D_{b,ijk},\\ \\sigma(\\mathbf{x}, t)\\big),
+          \\quad \\mathbf{x} \\sim U(\\text{cell}),\\ t \\sim U(\\text{bin}),
+
+an exponential moving maximum of the field's own density at jittered points (instant-NGP's
+rule, decay ``γ``), with ``σ = 0`` outside the cylinder. A cell starts *unasked*: it
+counts as occupied (nothing is skipped before the field has been asked about it) until
+its first update, which sets ``D`` to the sampled density. A cell is *occupied* when it
+or one of its neighbours (the 3×3×3 cells around it, in its own and the two adjacent
+time bins) has ``D > threshold``: one jittered point per cell and update can miss the
+peak of a feature that spans a few cells, and the dilation keeps its surroundings. The
+renderer evaluates the field only at samples in occupied cells
+(:meth:`OccupancyGrid.occupied`); a sample whose density is below the threshold adds at
+most ``1 − exp(−threshold · δ)`` of opacity over a step ``δ``.
+
+Updates (:class:`OccupancyUpdate`, a Lightning callback, every ``every`` steps) ask every
+unasked cell, every occupied cell and a random ``fraction`` of the empty ones, with a
+generator seeded by the step, so a resumed run updates exactly as an uninterrupted one;
+the grid is a buffer of the renderer and is saved in checkpoints.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import lightning.pytorch as pl
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from eventrecon.errors import InputError
+
+__all__ = ["OccupancyGrid", "OccupancyUpdate"]
+
+log = logging.getLogger(__name__)
+
+#: ``σ(x [N, 3], t [N, 1]) -> [N]`` density of the field with the clipping mask applied.
+DensityFn = Callable[[Tensor, Tensor], Tensor]
+
+
+class OccupancyGrid(nn.Module):
+    """``[B, G, G, G]`` space-time occupancy over a box (maths in the module docstring).
+
+    Args:
+        lo, hi: ``[3]`` corners of the box (the clipping cylinder's bounding box).
+        resolution: cells ``G`` per spatial axis.
+        time_bins: bins ``B`` of the segment's normalised time ``[0, 1]``.
+        threshold: density above which a cell is occupied.
+        decay: ``γ`` of the moving maximum.
+        every: steps between updates; fraction: share of the empty cells re-asked.
+        start_step: no sample is skipped before this step (the grid is updated).
+        chunk: points per field call during an update.
+
+    >>> g = OccupancyGrid([-1, -1, -1], [1, 1, 1], resolution=2, time_bins=1, threshold=0.5)
+    >>> bool(g.occupied(torch.zeros(1, 3), torch.zeros(1, 1)).item())  # unasked: occupied
+    True
+    >>> g.update(lambda x, t: (x[:, 0] > 0).float(), torch.Generator().manual_seed(0))
+    8
+    >>> g.occupied(torch.tensor([[-0.5, 0, 0], [0.5, 0, 0]]), torch.zeros(2, 1)).tolist()
+    [True, True]
+    >>> g4 = OccupancyGrid([-1, -1, -1], [1, 1, 1], resolution=4, time_bins=1, threshold=0.5)
+    >>> g4.update(lambda x, t: (x[:, 0] > 0.5).float(), torch.Generator().manual_seed(0))
+    64
+    >>> g4.occupied(torch.tensor([[-0.9, 0, 0], [0.1, 0, 0], [0.9, 0, 0]]),
+    ...             torch.zeros(3, 1)).tolist()  # the dilation keeps the cell next to x > 0.5
+    [False, True, True]
+    """
+
+    def __init__(self, lo: Sequence[float], hi: Sequence[float], resolution: int = 32,
+                 time_bins: int = 8, threshold: float = 0.01, decay: float = 0.95,
+                 every: int = 16, fraction: float = 0.25, start_step: int = 0,
+                 chunk: int = 65536) -> None:
+        super().__init__()
+        if resolution < 1 or time_bins < 1 or threshold < 0 or not 0 < decay <= 1 \
+                or every < 1 or not 0 <= fraction <= 1:
+            raise InputError("config", "render.occupancy",
+                             "resolution >= 1, time_bins >= 1, threshold >= 0, decay in (0, 1], "
+                             "every >= 1, fraction in [0, 1]",
+                             (resolution, time_bins, threshold, decay, every, fraction))
+        self.resolution, self.time_bins = int(resolution), int(time_bins)
+        self.threshold, self.decay = float(threshold), float(decay)
+        self.every, self.fraction = int(every), float(fraction)
+        self.start_step, self.chunk = int(start_step), int(chunk)
+        self.active = True  # skipping on (the renderer sets it from start_step)
+        shape = (self.time_bins, *(self.resolution,) * 3)
+        self.register_buffer("density", torch.zeros(shape))
+        self.register_buffer("asked", torch.zeros(shape, dtype=torch.bool))
+        self.register_buffer("occ", torch.ones(shape, dtype=torch.bool), persistent=False)
+        self.register_buffer("lo", torch.as_tensor(lo, dtype=torch.float32).reshape(3))
+        self.register_buffer("hi", torch.as_tensor(hi, dtype=torch.float32).reshape(3))
+
+    def extra_repr(self) -> str:
+        return (f"resolution={self.resolution}, time_bins={self.time_bins}, "
+                f"threshold={self.threshold}, decay={self.decay}, every={self.every}")
+
+    @property
+    def occupancy(self) -> Tensor:
+        """``[B, G, G, G]`` bool: occupied (dilated) or not yet asked."""
+        return self.occ
+
+    def refresh(self) -> None:
+        """Recompute :attr:`occupancy` from the densities: above the threshold or unasked,
+        dilated by one cell in space and one bin in time."""
+        core = ((self.density > self.threshold) | ~self.asked).float()
+        core = F.max_pool3d(core[:, None], 3, stride=1, padding=1)[:, 0]
+        if self.time_bins > 1:
+            core = torch.maximum(core, torch.cat([core[1:], core[-1:]]))
+            core = torch.maximum(core, torch.cat([core[:1], core[:-1]]))
+        self.occ.copy_(core > 0)
+
+    def _load_from_state_dict(self, *args: Any, **kwargs: Any) -> None:  # type: ignore[override]
+        super()._load_from_state_dict(*args, **kwargs)
+        self.refresh()
+
+    def cell_index(self, x: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
+        """Flat cell index of points ``x [..., 3]`` at times ``t [..., 1]``, and whether the
+        point lies in the box (``[...]`` each)."""
+        u = (x - self.lo.to(x)) / (self.hi - self.lo).to(x)
+        inside = ((u >= 0) & (u <= 1)).all(-1)
+        g, b = self.resolution, self.time_bins
+        ijk = (u * g).long().clamp(0, g - 1)
+        tb = (t[..., 0] * b).long().clamp(0, b - 1)
+        return ((tb * g + ijk[..., 0]) * g + ijk[..., 1]) * g + ijk[..., 2], inside
+
+    def occupied(self, x: Tensor, t: Tensor) -> Tensor:
+        """``[...]`` bool: whether the field must be evaluated at ``x [..., 3]``, ``t [..., 1]``
+        (points outside the box are never occupied: they are outside the cylinder)."""
+        idx, inside = self.cell_index(x, t)
+        return self.occupancy.reshape(-1)[idx] & inside
+
+    @torch.no_grad()
+    def update(self, density: DensityFn, gen: torch.Generator) -> int:
+        """Ask the field about the unasked, the occupied and a random share of the empty
+        cells (one jittered point each); returns the number of cells asked."""
+        flat_occ = ((self.density > self.threshold) | ~self.asked).reshape(-1)
+        n = flat_occ.numel()
+        pick = torch.rand(n, generator=gen, device=gen.device).to(flat_occ.device)
+        cells = (flat_occ | (pick < self.fraction)).nonzero().squeeze(1)
+        if cells.numel() == 0:
+            return 0
+        g, b = self.resolution, self.time_bins
+        jitter = torch.rand(cells.numel(), 4, generator=gen, device=gen.device).to(cells.device)
+        k = cells % g
+        j = (cells // g) % g
+        i = (cells // (g * g)) % g
+        tb = cells // (g * g * g)
+        u = (torch.stack([i, j, k], -1).float() + jitter[:, :3]) / g
+        x = self.lo + u * (self.hi - self.lo)
+        t = ((tb.float() + jitter[:, 3]) / b)[:, None]
+        new = torch.cat([density(x[a:a + self.chunk], t[a:a + self.chunk]).float()
+                         for a in range(0, cells.numel(), self.chunk)])
+        flat, asked = self.density.view(-1), self.asked.view(-1)
+        old = flat[cells]
+        flat[cells] = torch.where(asked[cells], torch.maximum(self.decay * old, new), new)
+        asked[cells] = True
+        self.refresh()
+        return int(cells.numel())
+
+    def occupied_fraction(self) -> float:
+        """Share of the cells that are occupied (or unasked)."""
+        return float(self.occupancy.float().mean())
+
+
+class OccupancyUpdate(pl.Callback):
+    """Updates the renderer's :class:`OccupancyGrid` every ``grid.every`` steps from the
+    module's field, and switches skipping on from ``grid.start_step``.
+
+    The update's random cells come from a generator seeded by ``(seed, step)``.
+    """
+
+    def __init__(self, seed: int = 0) -> None:
+        super().__init__()
+        self.seed = int(seed)
+
+    def on_train_batch_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule,
+                             batch: Any, batch_idx: int) -> None:
+        renderer = pl_module.renderer
+        grid: OccupancyGrid | None = getattr(renderer, "occupancy", None)
+        if grid is None:
+            return
+        step = int(trainer.global_step)
+        grid.active = step >= grid.start_step
+        if step % grid.every:
+            return
+        gen = torch.Generator().manual_seed(self.seed * 1_000_003 + step)
+        was_training = pl_module.field.training
+        pl_module.field.eval()
+        asked = grid.update(lambda x, t: renderer.masked_density(pl_module.field, x, t), gen)
+        pl_module.field.train(was_training)
+        if step % max(grid.every * 16, 1) == 0:
+            log.debug("step %d: occupancy grid asked %d cells, %.1f%% occupied", step, asked,
+                      100 * grid.occupied_fraction())
+        if math.isfinite(grid.occupied_fraction()):
+            pl_module.log("train/occupied", grid.occupied_fraction(), on_step=True,
+                          on_epoch=False)
