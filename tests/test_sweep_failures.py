@@ -92,10 +92,11 @@ def test_failing_job_is_recorded_skipped_on_rerun_and_reported(data_dir: Path, t
                           env=_env(data_dir), capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "found 3 runs (2 ok)" in proc.stdout + proc.stderr
+    paper_part = (report / "table7.md").read_text().split("### Subject region")[0]
     rows = {ln.split("|")[1].strip(): [c.strip() for c in ln.split("|")[2:-1]]
-            for ln in (report / "table7.md").read_text().splitlines()
+            for ln in paper_part.splitlines()
             if ln.startswith("| ") and ln.split("|")[1].strip().isdigit()}
-    assert rows["99"] == ["—", "failed", "—"]
+    assert rows["99"] == ["—", "failed", "—", "0/1 (1 failed)"]
     assert rows["2"][1] == f"{m[2]['psnr']:.2f}" and rows["3"][1] == f"{m[3]['psnr']:.2f}"
     assert rows["4"][1] == "—"  # not run: a dash, never a made-up number
 

@@ -4,9 +4,11 @@
 default output ``multirun/report/``, git-ignored)
 gathers every ``metrics.json`` under the given folders (Hydra multirun job folders),
 writes ``table3.md``/``.tex`` … ``table7.md``/``.tex`` in the paper's layout (paper,
-ours, Δ; "—" for missing runs, "failed" for failed ones) and ``accuracy_vs_time.png`` /
-``.md``. Modules: :mod:`.paper` (the paper's numbers), :mod:`.runs` (the run-folder
-contract), :mod:`.tables`, :mod:`.curves`, :mod:`.format`.
+ours as mean ± 95 % interval over seeds, Δ; "—" for missing runs, "collapsed" / "failed"
+for runs that are not results), ``accuracy_vs_time.png`` / ``.md`` and ``findings.md``
+(the paper's claims, checked). Modules: :mod:`.paper` (the paper's numbers),
+:mod:`.runs` (collecting run folders), :mod:`.stats` (means, intervals),
+:mod:`.tables`, :mod:`.curves`, :mod:`.findings`, :mod:`.format`.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from eventrecon.report.curves import DEFAULT_LEVELS, write_accuracy_vs_time
+from eventrecon.report.findings import check_findings, findings_markdown
 from eventrecon.report.paper import PAPER_TABLES
 from eventrecon.report.runs import Run, collect_runs, read_curve, read_run, write_run
 from eventrecon.report.tables import REAL_SCENE, build_table, to_latex, to_markdown, write_tables
@@ -51,4 +54,6 @@ def build_report(
     log.info("found %d runs (%d ok)", len(runs), sum(r.ok for r in runs))
     paths = write_tables(runs, out, tables, real_scene=real_scene)
     paths += write_accuracy_vs_time(runs, out, levels, curves_experiment)
-    return paths
+    findings = Path(out) / "findings.md"
+    findings.write_text(findings_markdown(check_findings(runs)))
+    return [*paths, findings]

@@ -60,6 +60,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     for p in paths:
         log.info("wrote %s", p)
+    findings = next((p for p in paths if p.name == "findings.md"), None)
+    if findings is not None:  # the report ends with the paper's claims, checked
+        log.info("\n%s", findings.read_text())
     if args.copy_runs:
         from eventrecon.report.runs import collect_runs, copy_runs
 

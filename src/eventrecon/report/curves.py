@@ -105,7 +105,7 @@ def accuracy_table(
     summaries: Sequence[CurveSummary], levels: Sequence[float] = DEFAULT_LEVELS
 ) -> str:
     """Markdown: per run, time to each PSNR level, best / final PSNR, s/it, peak memory."""
-    header = ["Backbone", "Scene", "Loss", "eval"]
+    header = ["Backbone", "Scene", "Loss", "seed", "eval"]
     header += [f"t → {lv:g} dB [s]" for lv in levels]
     header += ["best PSNR", "final PSNR", "s/it", "peak mem [MB]", "status"]
     rows = []
@@ -115,11 +115,11 @@ def accuracy_table(
     for s in ordered:
         r = s.run
         rows.append(
-            [r.model, r.scene, r.loss, s.kind]
+            [r.model, r.scene, r.loss, str(r.record.get("seed", DASH)), s.kind]
             + [fmt(s.times[lv], 1) for lv in levels]
             + [
                 fmt(s.best_psnr, 2),
-                fmt(r.metric("psnr"), 2) if r.ok else DASH,
+                fmt(r.metric("psnr"), 2) if r.ok else r.status,
                 fmt(r.number("sec_per_it"), 4),
                 fmt(r.number("peak_mem_mb"), 0),
                 r.status,
@@ -130,7 +130,8 @@ def accuracy_table(
         "- t → L: first logged wall-clock training time with held-out PSNR ≥ L (—: never "
         "reached), over every evaluation of the curve (eval: cheap = fixed random pixels, "
         "full = whole images, of every held-out view at three times).",
-        "- best PSNR: maximum over the curve; final PSNR: metrics.json at the end of training.",
+        "- best PSNR: maximum over the curve; final PSNR: metrics.json at the end of training "
+        "(\"collapsed\": the run renders the empty field, no score).",
     ]
     return markdown_table(header, rows) + "\n" + "\n".join(notes) + "\n"
 
@@ -141,7 +142,9 @@ def plot_accuracy_vs_time(runs: Sequence[Run], path: str | Path, loss: str | Non
     ``full`` ones (the only ones with SSIM and LPIPS).
 
     Only runs with ``loss`` (the backbone comparison) are drawn when there are any;
-    ``loss=None`` draws every run. Writes a PNG (Agg backend) and returns its path.
+    ``loss=None`` draws every run. Collapsed and failed runs are not drawn as curves: the
+    figure names them instead ("collapsed: ..."). Seeds of one backbone and scene share a
+    colour and a legend entry. Writes a PNG (Agg backend) and returns its path.
     """
     import matplotlib
 
@@ -150,6 +153,8 @@ def plot_accuracy_vs_time(runs: Sequence[Run], path: str | Path, loss: str | Non
     from matplotlib.ticker import NullFormatter
 
     chosen = [r for r in runs if loss is None or r.loss == loss] or list(runs)
+    not_drawn = [r for r in chosen if not r.ok]
+    chosen = [r for r in chosen if r.ok]
     curves = [(r, _curve(r)) for r in chosen]
     curves = [(r, c) for r, c in curves if len(c["wall_s"])]
     shown = [(k, lab) for k, lab in _METRICS if any(np.isfinite(c[k]).any() for _, c in curves)]
@@ -168,7 +173,9 @@ def plot_accuracy_vs_time(runs: Sequence[Run], path: str | Path, loss: str | Non
             full = c["kind"] == "full"
             col, ls = colours[r.model], styles[r.scene]
             has = np.isfinite(c[key])
-            ax.plot(c["wall_s"][has], c[key][has], ls, color=col, lw=1.3, label=name)
+            first = name not in {h.get_label() for h in ax.get_lines()}
+            ax.plot(c["wall_s"][has], c[key][has], ls, color=col, lw=1.3,
+                    label=name if first else "_nolegend_")
             if (full & has).any():
                 ax.plot(c["wall_s"][full & has], c[key][full & has], "o", color=col, ms=4)
         ax.set_xlabel("wall-clock time [s]")
@@ -183,6 +190,12 @@ def plot_accuracy_vs_time(runs: Sequence[Run], path: str | Path, loss: str | Non
     uniq = dict(zip(labels, handles))
     if uniq:
         axes[0][0].legend(uniq.values(), uniq.keys(), fontsize=8)
+    if not_drawn:
+        names = sorted({f"{r.model}/{r.scene} seed {r.record.get('seed')}: {r.status}"
+                        for r in not_drawn})
+        fig.text(0.01, 0.01, "not drawn — " + "; ".join(names[:6])
+                 + (f"; +{len(names) - 6} more" if len(names) > 6 else ""), fontsize=7,
+                 color="0.3")
     fig.suptitle("Held-out quality vs wall-clock training time (markers: full evaluations)")
     fig.tight_layout()
     path = Path(path)

@@ -18,6 +18,8 @@ from collections.abc import Sequence
 DASH = "—"
 #: Shown in place of our numbers when the run failed.
 FAILED = "failed"
+#: Shown in place of our numbers when every seed's run rendered the empty field.
+COLLAPSED = "collapsed"
 #: Shown when a run finished but the metric is unavailable (LPIPS without weights).
 NOT_AVAILABLE = "n/a"
 

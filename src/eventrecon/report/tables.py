@@ -20,22 +20,34 @@ the paper's, ours and ``Δ = ours − paper``. Rules:
 - Settings held fixed (views and fps for Tab. 3/4; the model and views for Tab. 5, the
   model and fps for Tab. 6/7) take the most common value among the table's runs; a
   footnote says which.
-- One run per cell: ok before failed, then the newest. Missing → "—", failed → "failed",
-  LPIPS unavailable → "n/a"; nothing is ever made up.
-- Tab. 3's "Average" (ours) is the mean over the scene columns where that row has a value.
+- Seeds: a cell holds one run per seed (ok before collapsed before failed, then the
+  newest); ours is the mean over the seeds whose run is ``ok``, with the half-width of
+  its 95 % interval (:mod:`.stats`) when there are two or more, and the column ``n``
+  says how many seeds were scored of how many ran (collapsed and failed ones named).
+  Missing → "—"; every seed collapsed → "collapsed", failed → "failed"; LPIPS
+  unavailable → "n/a"; nothing is ever made up.
+- Tab. 3's "Average" (ours) is the mean over the scene columns where that row has a
+  value (its interval combines theirs, assuming independent columns).
+- Below the paper-comparable columns, a *subject* section per scene: PSNR on the
+  subject's region (the masks of the held-out frames) and the gain over the empty
+  field, full-frame and on the subject.
+- Footnotes list what the runs changed from the paper's method to fit a CPU budget
+  (compressed schedules, CPU sizes), read from the runs' own records.
 """
 
 from __future__ import annotations
 
 import logging
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from eventrecon.report.cells import Cell, cell_stats, fmt_ci, method_notes, per_seed
 from eventrecon.report.format import (
+    COLLAPSED,
     DASH,
     FAILED,
     NOT_AVAILABLE,
@@ -45,73 +57,18 @@ from eventrecon.report.format import (
     markdown_table,
 )
 from eventrecon.report.paper import METRIC_LABELS, PAPER_TABLES, PaperTable
+from eventrecon.report.rows import FIXED, ROW_OF, setting_label
 from eventrecon.report.runs import Run
+from eventrecon.report.stats import MeanCI
 
 log = logging.getLogger(__name__)
 
 #: Our synthetic scene → the paper's Tab. 3 column it stands for: ``static`` is, like
 #: "Static Lego", a scene in which nothing moves (no events: only the frames inform it).
-SCENE_TO_PAPER: dict[str, str] = {"spheres": "Spheres", "static": "Static Lego"}
+SCENE_TO_PAPER: dict[str, str] = {"blender": "Blender", "dress": "Dress", "spheres": "Spheres",
+                                  "lego": "Lego", "static_lego": "Static Lego"}
 #: Our counterpart of the real "Sword" scene (Tab. 4–6).
 REAL_SCENE = "rig_lowlight"
-
-_BACKBONES = {"tensorf_cp": "TensoRF-CP", "ngp": "NGP", "hexplane": "HexPlane"}
-_ABLATIONS = {
-    "no_clipping": "w/o clipping",
-    "no_decay": "w/o decay",
-    "no_multiseg": "w/o multi-segment",
-    "no_sparsity": "w/o L_sparsity",
-    "no_event": "w/o L_event",
-    "no_acc": "w/o L_acc",
-    "no_rgb": "w/o L_RGB",
-    "only_event": "only L_event",
-    "only_acc": "only L_acc",
-    "only_rgb": "only L_RGB",
-}
-
-
-def method_row(run: Run, table: str) -> str | None:
-    """Tab. 3/4 row label of a run's ``(model, loss)``; ``None`` if the table has no such row."""
-    if run.model != "nerf":
-        if run.loss != "full" or run.model not in _BACKBONES:
-            return None
-        name = _BACKBONES[run.model]
-        label = name if table == "table3" else f"Ours ({name})"
-    elif run.loss == "full":
-        label = "Full Model" if table == "table3" else "Our Full Model (Final)"
-    else:
-        label = _ABLATIONS.get(run.loss)
-    return label if label in PAPER_TABLES[table].rows else None
-
-
-def _setting(v: float | str | None) -> str:
-    """``5.0`` → "5", ``0.5`` → "0.5", ``None`` (the config's null) → "all", a name as is."""
-    return "all" if v is None else v if isinstance(v, str) else f"{v:g}"
-
-
-def _setting_row(attr: str) -> Callable[[Run, str], str | None]:
-    def row(run: Run, table: str) -> str | None:
-        return _setting(getattr(run, attr)) if run.loss == "full" else None
-
-    return row
-
-
-#: How a run finds its row, and which run settings are held fixed, per table.
-ROW_OF: dict[str, Callable[[Run, str], str | None]] = {
-    "table3": method_row,
-    "table4": method_row,
-    "table5": _setting_row("fps"),
-    "table6": _setting_row("views"),
-    "table7": _setting_row("views"),
-}
-FIXED: dict[str, tuple[str, ...]] = {
-    "table3": ("views", "fps"),
-    "table4": ("views", "fps"),
-    "table5": ("model", "views"),
-    "table6": ("model", "fps"),
-    "table7": ("model", "fps"),
-}
-
 
 @dataclass(frozen=True)
 class Group:
@@ -123,16 +80,6 @@ class Group:
 
 
 @dataclass
-class Cell:
-    """Paper values, our values (``None`` entries = unavailable), failed flag, the run."""
-
-    paper: tuple[float, ...] | None
-    ours: tuple[float | None, ...] | None = None
-    failed: bool = False
-    run: Run | None = None
-
-
-@dataclass
 class BuiltTable:
     """A paper table filled with our runs: ``cells[(row, group.name)]`` plus footnotes."""
 
@@ -141,11 +88,6 @@ class BuiltTable:
     groups: list[Group]
     cells: dict[tuple[str, str], Cell]
     notes: list[str] = field(default_factory=list)
-
-
-def _pick(runs: Sequence[Run]) -> Run:
-    """One run per cell: ok before failed, then the newest."""
-    return max(runs, key=lambda r: (r.ok, r.mtime, str(r.path)))
 
 
 def _modal_filter(runs: list[Run], attrs: Sequence[str]) -> tuple[list[Run], dict]:
@@ -214,7 +156,7 @@ def build_table(
             continue
         kept, mode = _modal_filter([r for r in pool if r.scene == g.scene], FIXED[key])
         if mode:
-            fixed = ", ".join(f"{k}={_setting(v)}" for k, v in mode.items())
+            fixed = ", ".join(f"{k}={setting_label(v)}" for k, v in mode.items())
             notes.append(f"Ours on `{g.scene}` at {fixed}.")
         empty = [v for r in kept if (v := r.metric("psnr_background")) is not None]
         if empty:
@@ -235,10 +177,9 @@ def build_table(
             cell = Cell(paper.value(row, g.paper_column) if g.paper_column else None)
             cand = chosen.get((row, g.name))
             if cand:
-                run = _pick(cand)
-                cell.run, cell.failed = run, not run.ok
-                if run.ok:
-                    cell.ours = tuple(run.metric(m) for m in paper.metrics)
+                cell.runs = per_seed(cand)
+                cell.ours = cell_stats(cell.runs, paper.metrics)
+                for run in cell.scored:
                     if "lpips" in paper.metrics and run.metric("lpips") is None:
                         lpips_notes.add(str(run.record.get("lpips_note") or "not computed"))
             cells[(row, g.name)] = cell
@@ -247,7 +188,8 @@ def build_table(
         _fill_average(paper, rows, groups, cells, notes)
     for n in sorted(lpips_notes):
         notes.append(f'"{NOT_AVAILABLE}": LPIPS unavailable ({n}).')
-    if not any(c.run for c in cells.values()):
+    notes += method_notes([r for c in cells.values() for r in c.runs])
+    if not any(c.runs for c in cells.values()):
         notes.append(f"No runs found for this table: our columns are all '{DASH}'.")
     return BuiltTable(paper, rows, groups, cells, notes)
 
@@ -260,11 +202,12 @@ def _fill_average(
     notes: list[str],
 ) -> None:
     """Ours in the average column: per row and metric, the mean over the scene columns
-    where that row has a value (failed / missing / unavailable cells are left out)."""
+    where that row has a value (failed / collapsed / missing / unavailable cells are left
+    out); its half-width ``sqrt(Σ h²) / k`` when every column has one."""
     scene_groups = [g for g in groups if g.name != paper.average_column]
     used: dict[str, list[str]] = {}
     for row in rows:
-        means: list[float | None] = []
+        means: list[MeanCI | None] = []
         for m in range(len(paper.metrics)):
             vals = []
             for g in scene_groups:
@@ -273,9 +216,18 @@ def _fill_average(
                     vals.append(c.ours[m])
                     if m == 0:
                         used.setdefault(row, []).append(g.scene)
-            means.append(float(np.mean(vals)) if vals else None)
+            if not vals:
+                means.append(None)
+                continue
+            halves = [v.half for v in vals]
+            half = (float(np.sqrt(sum(h * h for h in halves))) / len(vals)
+                    if all(h is not None for h in halves) else None)
+            means.append(MeanCI(float(np.mean([v.mean for v in vals])), half,
+                                min(v.n for v in vals)))
         if any(v is not None for v in means):
-            cells[(row, paper.average_column)].ours = tuple(means)
+            avg = cells[(row, paper.average_column)]
+            avg.ours = tuple(means)
+            avg.runs = [r for g in scene_groups for r in cells[(row, g.name)].runs]
     if used:
         sets = {tuple(v) for v in used.values()}
         if len(sets) == 1:
@@ -297,15 +249,14 @@ def _fill_average(
 
 def _cell_strings(cell: Cell, m: int, decimals: int) -> list[str]:
     paper = fmt(cell.paper[m], decimals) if cell.paper else DASH
-    if cell.failed:
-        return [paper, FAILED, DASH]
     if cell.ours is None:
-        return [paper, DASH, DASH]
+        shown = {"collapsed": COLLAPSED, "failed": FAILED}.get(cell.status, DASH)
+        return [paper, shown, DASH]
     ours = cell.ours[m]
     if ours is None:
         return [paper, NOT_AVAILABLE, DASH]
-    delta = ours - cell.paper[m] if cell.paper else None
-    return [paper, fmt(ours, decimals), fmt_delta(delta, decimals)]
+    delta = ours.mean - cell.paper[m] if cell.paper else None
+    return [paper, fmt_ci(ours, decimals), fmt_delta(delta, decimals)]
 
 
 def _group_title(t: BuiltTable, g: Group) -> str:
@@ -324,21 +275,51 @@ def _group_rows(t: BuiltTable, g: Group) -> list[list[str]]:
             for m in range(len(t.paper.metrics))
             for s in _cell_strings(t.cells[(row, g.name)], m, t.paper.decimals)
         ]
+        + [t.cells[(row, g.name)].count]
         for row in t.rows
     ]
 
 
+#: The subject section's columns: metric key of metrics.json → header.
+SUBJECT_COLUMNS: dict[str, str] = {
+    "psnr_subject": "subject PSNR↑", "ssim_subject": "subject SSIM↑",
+    "gain_psnr": "gain over empty (full frame)", "gain_psnr_subject": "gain over empty (subject)"}
+
+
+def _subject_rows(t: BuiltTable, g: Group) -> list[list[str]]:
+    rows = []
+    for row in t.rows:
+        cell = t.cells[(row, g.name)]
+        stats = cell_stats(cell.runs, list(SUBJECT_COLUMNS)) if cell.runs else None
+        if stats is None:
+            shown = {"collapsed": COLLAPSED, "failed": FAILED}.get(cell.status, DASH)
+            rows.append([row] + [shown] * len(SUBJECT_COLUMNS) + [cell.count])
+            continue
+        rows.append([row] + [fmt_ci(v, t.paper.decimals) if v is not None else DASH
+                             for v in stats] + [cell.count])
+    return rows
+
+
 def to_markdown(t: BuiltTable) -> str:
-    """The table as Markdown: one sub-table per column group, then the footnotes."""
-    intro = f"_{t.paper.caption}_ Columns: paper, ours, Δ = ours − paper."
+    """The table as Markdown: one sub-table per column group, the subject sections, then
+    the footnotes."""
+    intro = (f"_{t.paper.caption}_ Columns: paper, ours (mean ± 95 % interval over the "
+             "seeds scored), Δ = ours − paper, n = seeds scored / run.")
     out = [f"## {t.paper.title}", "", intro, ""]
     for g in t.groups:
         header = [t.paper.row_header] + [
             f"{METRIC_LABELS[m]} {what}"
             for m in t.paper.metrics
             for what in ("paper", "ours", "Δ")
-        ]
+        ] + ["n"]
         out += [f"### {_group_title(t, g)}", "", markdown_table(header, _group_rows(t, g)), ""]
+    for g in t.groups:
+        runs = [r for row in t.rows for r in t.cells[(row, g.name)].runs]
+        if g.scene is None or not any(r.metric("psnr_subject") is not None for r in runs):
+            continue
+        header = [t.paper.row_header, *SUBJECT_COLUMNS.values(), "n"]
+        out += [f"### Subject region — `{g.scene}` (ours only; masks of the held-out frames)",
+                "", markdown_table(header, _subject_rows(t, g)), ""]
     out += [f"- {n}" for n in t.notes]
     return "\n".join(out).rstrip() + "\n"
 
@@ -346,17 +327,17 @@ def to_markdown(t: BuiltTable) -> str:
 def to_latex(t: BuiltTable) -> str:
     """The table as LaTeX (``booktabs``): one tabular block per column group."""
     k = len(t.paper.metrics)
-    spec = "l" + " rrr" * k
+    spec = "l" + " rrr" * k + " l"
     lines = [r"% requires \usepackage{booktabs}", r"\begin{table}[t]", r"\centering", r"\small"]
     for g in t.groups:
         lines += [rf"\begin{{tabular}}{{{spec}}}", r"\toprule"]
-        lines.append(rf"\multicolumn{{{1 + 3 * k}}}{{c}}{{{latex_text(_group_title(t, g))}}} \\")
+        lines.append(rf"\multicolumn{{{2 + 3 * k}}}{{c}}{{{latex_text(_group_title(t, g))}}} \\")
         spans = [
             rf"\multicolumn{{3}}{{c}}{{{latex_text(METRIC_LABELS[m])}}}" for m in t.paper.metrics
         ]
-        lines.append(" & ".join(["", *spans]) + r" \\")
+        lines.append(" & ".join(["", *spans, ""]) + r" \\")
         lines.append(" ".join(rf"\cmidrule(lr){{{2 + 3 * i}-{4 + 3 * i}}}" for i in range(k)))
-        sub = [latex_text(t.paper.row_header)] + ["paper", "ours", r"$\Delta$"] * k
+        sub = [latex_text(t.paper.row_header)] + ["paper", "ours", r"$\Delta$"] * k + ["n"]
         lines.append(" & ".join(sub) + r" \\")
         lines.append(r"\midrule")
         for r in _group_rows(t, g):

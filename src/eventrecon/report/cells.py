@@ -1,0 +1,106 @@
+"""A table cell of our runs: one run per seed, their mean ± 95 % interval, and what the
+runs changed from the paper's method (for the footnotes).
+
+A cell keeps every seed's run (:func:`per_seed`: ok before collapsed before failed, then
+the newest); only ``ok`` runs are scored (:func:`cell_stats`); :attr:`Cell.count` says
+how many of how many, and why the others were not.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+from eventrecon.report.format import DASH, fmt
+from eventrecon.report.runs import Run
+from eventrecon.report.stats import MeanCI, mean_ci
+
+__all__ = ["Cell", "per_seed", "cell_stats", "fmt_ci", "method_notes"]
+
+
+@dataclass
+class Cell:
+    """Paper values, our runs (one per seed) and their mean ± interval per metric
+    (``None`` entries = unavailable)."""
+
+    paper: tuple[float, ...] | None
+    runs: list[Run] = field(default_factory=list)
+    ours: tuple[MeanCI | None, ...] | None = None
+
+    @property
+    def scored(self) -> list[Run]:
+        return [r for r in self.runs if r.ok]
+
+    @property
+    def count(self) -> str:
+        """``"2/3 (1 collapsed)"``: seeds scored of seeds run, and why the others were not."""
+        if not self.runs:
+            return DASH
+        why = [f"{n} {s}" for s in ("collapsed", "failed")
+               if (n := sum(r.status == s for r in self.runs))]
+        return f"{len(self.scored)}/{len(self.runs)}" + (f" ({', '.join(why)})" if why else "")
+
+    @property
+    def status(self) -> str:
+        """``ok`` (some seed scored), ``collapsed`` / ``failed`` (none did), or ``missing``."""
+        if self.scored:
+            return "ok"
+        if any(r.status == "collapsed" for r in self.runs):
+            return "collapsed"
+        return "failed" if self.runs else "missing"
+
+
+_STATUS_ORDER = {"ok": 2, "collapsed": 1, "failed": 0}
+
+
+def per_seed(runs: Sequence[Run]) -> list[Run]:
+    """One run per seed: ok before collapsed before failed, then the newest."""
+    best: dict[object, Run] = {}
+    for r in runs:
+        key = r.record.get("seed")
+        rank = (_STATUS_ORDER.get(r.status, -1), r.mtime, str(r.path))
+        if key not in best or rank > (_STATUS_ORDER.get(best[key].status, -1),
+                                      best[key].mtime, str(best[key].path)):
+            best[key] = r
+    return [best[k] for k in sorted(best, key=str)]
+
+
+def cell_stats(runs: Sequence[Run], metrics: Sequence[str]) -> tuple[MeanCI | None, ...] | None:
+    """Per metric the mean ± interval over the scored runs (``None`` when none has it)."""
+    scored = [r for r in runs if r.ok]
+    if not scored:
+        return None
+    out = []
+    for m in metrics:
+        vals = [v for r in scored if (v := r.metric(m)) is not None]
+        out.append(mean_ci(vals) if vals else None)
+    return tuple(out)
+
+
+def fmt_ci(v: MeanCI, decimals: int) -> str:
+    """``30.000`` (one seed) or ``30.000 ± 0.210``."""
+    return fmt(v.mean, decimals) + (f" ± {v.half:.{decimals}f}" if v.half is not None else "")
+
+
+def method_notes(runs: Sequence[Run]) -> list[str]:
+    """Footnotes naming what the runs changed from the paper's method (their records say)."""
+    notes = []
+    schedules = Counter(r.record.get("schedule") for r in runs if r.record.get("schedule"))
+    if schedules.get("compressed"):
+        notes.append("Warm-up schedules compressed to the same share of the run as in the "
+                     "paper's 150k steps (trainer.schedule=compressed: band annealing, the NGP "
+                     "cylinder, TensoRF-CP's growth); the sparsity ramp keeps its 30000 steps.")
+    sizes = sorted({str(r.record.get("sizing")) for r in runs if r.record.get("sizing")})
+    if sizes:
+        notes.append("Backbones at their CPU sizes: " + ", ".join(f"`conf/sizing/{s}.yaml`"
+                                                                  for s in sizes) + ".")
+    skips = {r.record.get("skip") for r in runs if r.record.get("skip")}
+    if "grid" in skips:
+        notes.append("Samples in cells the occupancy grid marks empty are not evaluated "
+                     "(render.skip=grid; see docs/results for its agreement with skip=none).")
+    steps = sorted({int(r.record["max_steps"]) for r in runs if r.record.get("max_steps")})
+    if steps:
+        notes.append(f"Training steps per segment: {', '.join(map(str, steps))} "
+                     "(the paper: 150000).")
+    return notes
