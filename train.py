@@ -25,7 +25,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-import eventrecon  # noqa: F401 - registers the config resolvers (${of_run:...})
+import eventrecon  # noqa: F401 - registers the config resolvers (${paper_steps:...})
 
 log = logging.getLogger("eventrecon.train")
 
@@ -79,25 +79,46 @@ def main(cfg: DictConfig) -> float | None:
         log.info("segment %s trained; the run is evaluated once segments %s are trained too",
                  cfg.data.segment, metrics["missing_segments"])
         return None
-    lp = metrics.get("lpips")
-    lp_txt = f"{lp:.4f}" if lp is not None else f"unavailable ({metrics.get('lpips_note')})"
-    log.info("held-out %s: PSNR %.3f dB  SSIM %.4f  LPIPS %s  (%d steps, %.1f s training, %s)",
-             metrics.get("scene"), metrics.get("psnr", float("nan")),
-             metrics.get("ssim", float("nan")), lp_txt, metrics["steps"], metrics["wall_s"],
-             out_dir / "metrics.json")
+    from eventrecon.summary import format_summary
+
+    emit = log.warning if metrics["status"] == "collapsed" else log.info
+    emit("%s", format_summary(metrics, out_dir))
     return metrics.get("psnr")
 
 
+#: Lightning's lines that say nothing about this run (hardware it does not use, an
+#: advertisement, the end of fit, which the runner reports itself).
+_CHATTER = ("GPU available", "TPU available", "HPU available", "IPU available", "litlogger",
+            "LitLogger", "`Trainer.fit` stopped", "Seed set to")
+
+
+class _QuietLightning(logging.Filter):
+    """Drops :data:`_CHATTER` lines; on a GPU run the GPU line stays (it says which)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        msg = record.getMessage()
+        if msg.startswith("GPU available: True"):
+            return True
+        return not any(c in msg for c in _CHATTER)
+
+
 def _one_log_stream() -> None:
-    """Lightning's messages once, through Hydra's handlers (console and the run's log file).
+    """Lightning's messages once, through Hydra's handlers (console and the run's log file),
+    without its chatter (:data:`_CHATTER`).
 
     ``import lightning`` adds its own console handler to the ``lightning`` logger, which
     also propagates to the root logger that Hydra configured: every message came twice.
-    Lightning's internal ``LeafSpec`` deprecation warning is not the user's to act on.
+    Lightning's internal ``LeafSpec`` deprecation warning is not the user's to act on, nor
+    is its hint about DataLoader workers (the loader here only counts steps).
     """
     import warnings
 
     logging.getLogger("lightning").handlers.clear()
+    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero",
+                 "lightning.pytorch.accelerators.cuda"):
+        logging.getLogger(name).addFilter(_QuietLightning())
+    warnings.filterwarnings("ignore", message=r".*does not have many workers.*")
+    warnings.filterwarnings("ignore", message=r".*number of training batches.*")
     warnings.filterwarnings("ignore", message=r".*LeafSpec.*", category=DeprecationWarning)
     warnings.filterwarnings("ignore", message=r".*LeafSpec.*", category=FutureWarning)
 

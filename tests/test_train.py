@@ -149,13 +149,19 @@ def test_select_fps_tolerates_rounded_frame_names_and_one_frame(data_dir: Path):
     assert selection.select_fps(one, 100.0, 3.7).frame_times.tolist() == [0.0]
 
 
-def test_schedules_follow_each_segments_own_length(data_dir: Path):
-    cfg = tiny_config(data_dir, "trainer.max_steps=1000", "trainer.split_steps=true",
-                      "model.anneal_steps=${of_run:0.1}", "loss.sparsity_ramp=${of_run:0.2}")
+def test_compressed_schedules_follow_each_segments_own_length(data_dir: Path):
+    """A split budget (trainer.split_steps) with compressed schedules: each segment's
+    warm-up is its own share of the paper's run; paper schedules stay in steps."""
+    cfg = tiny_config(data_dir, "trainer.max_steps=15000", "trainer.split_steps=true",
+                      "trainer.schedule=compressed", "model.anneal_steps=${paper_steps:4000}")
     steps = segment_steps(cfg, 5)
     seg = segment_config(cfg, steps)
-    assert steps == 200 and seg.trainer.max_steps == 200 and not seg.trainer.split_steps
-    assert (seg.model.anneal_steps, seg.loss.sparsity_ramp) == (20, 40)  # of 200, not 1000
+    assert steps == 3000 and seg.trainer.max_steps == 3000 and not seg.trainer.split_steps
+    assert seg.model.anneal_steps == 80  # 4000 · 3000 / 150000, of the segment, not the run
+    paper = segment_config(tiny_config(data_dir, "trainer.max_steps=15000",
+                                       "trainer.split_steps=true",
+                                       "model.anneal_steps=${paper_steps:4000}"), 3000)
+    assert paper.model.anneal_steps == 4000
     assert segment_config(tiny_config(data_dir), 10) is not None
 
 

@@ -28,6 +28,7 @@ from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import InterpolationResolutionError
 
 from eventrecon.data.batcher import RayBatcher, Segment
 from eventrecon.data.properties import SceneProperties, resolve_properties
@@ -68,8 +69,13 @@ def instantiate(node: DictConfig | dict, where: str, base: type | None = None,
     ...     print(str(e)[:81])
     config: loss._target_: expected an importable class (a _target_ as in conf/loss/)
     """
-    kwargs = (OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig)
-              else dict(node))
+    try:
+        kwargs = (OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig)
+                  else dict(node))
+    except InterpolationResolutionError as e:  # a resolver's own one-line error
+        if isinstance(e.__cause__, InputError):
+            raise e.__cause__ from None
+        raise InputError("config", where, "resolvable values", str(e).splitlines()[0]) from None
     assert isinstance(kwargs, dict)
     target = kwargs.pop("_target_", None)
     for key in skip:
@@ -171,10 +177,13 @@ def build_module(cfg: DictConfig, props: SceneProperties, train: SplitData | Non
     optim = cfg.model.get("optim", {}) or {}
     step = StepConfig(n_rays=cfg.trainer.n_rays, lr=float(optim.get("lr", 1e-3)),
                       weight_decay=float(optim.get("weight_decay", 0.0)),
+                      betas=tuple(float(b) for b in optim.get("betas", (0.9, 0.999))),
+                      eps=float(optim.get("eps", 1e-8)),
                       max_nonfinite=cfg.trainer.max_nonfinite, log_every=cfg.trainer.log_every,
                       seed=cfg.seed + 1000 * k)
-    return EventNeRFModule(field, build_renderer(cfg.render, props), batcher,
-                           build_loss(cfg.loss, props), step)
+    renderer = build_renderer(cfg.render, props)
+    field.set_scene_box(*renderer.cylinder.box())
+    return EventNeRFModule(field, renderer, batcher, build_loss(cfg.loss, props), step)
 
 
 def build_logger(cfg: DictConfig, save_dir: Path, version: str) -> Any:
@@ -242,5 +251,8 @@ def load_segment(cfg: DictConfig, props: SceneProperties, seg_dir: Path, ckpt: s
     field.load_state_dict({k[6:]: v for k, v in state["state_dict"].items()
                            if k.startswith("field.")})
     renderer = build_renderer(cfg.render, props)
+    renderer.load_state_dict({k[9:]: v for k, v in state["state_dict"].items()
+                              if k.startswith("renderer.")})
+    field.set_scene_box(*renderer.cylinder.box())
     renderer.clip_scale = float(state.get("eventrecon", {}).get("clip_scale", 1.0))
     return field.eval(), renderer

@@ -74,6 +74,7 @@ class HeldOutMonitor(L.Callback):
         self.pix = torch.randperm(n_pix, generator=g)[: min(curve_pixels, n_pix)]
         self.bg = background_linear(split)
         self.best_psnr = -math.inf
+        self.last_psnr: float | None = None  # the latest evaluation (progress reports)
         self.wall = 0.0  # this segment's training seconds (restored on resume)
         self._t_last: float | None = None
         self._full_at: int | None = None  # the step of the last full evaluation
@@ -139,10 +140,14 @@ class HeldOutMonitor(L.Callback):
         if full:
             m = score_images(preds, gts, lpips=True)
             row = {"psnr": m["psnr"], "ssim": m["ssim"], "lpips": m.get("lpips")}
-            self._log_images(trainer, pl_module, encode(preds[0]),
-                             gts[0].astype(np.float32) / 255, extras[0], step)
+            n_views = len(cams)
+            over_time = np.concatenate(  # view 0 at each evaluated time: render | truth
+                [np.concatenate([encode(preds[i]), gts[i].astype(np.float32) / 255], 1)
+                 for i in range(0, len(preds), n_views)], 0)
+            self._log_images(trainer, pl_module, over_time, extras[0], step)
         else:
             row = {"psnr": cheap_psnr(preds, gts), "ssim": None, "lpips": None}
+        self.last_psnr = row["psnr"]
         kind = "full" if full else "cheap"
         if full:
             self._full_at = step
@@ -150,6 +155,9 @@ class HeldOutMonitor(L.Callback):
         if trainer.logger is not None:
             trainer.logger.log_metrics(
                 {f"val_{kind}/{k}": float(v) for k, v in row.items() if v is not None}, step)
+            # accuracy against training seconds, live: the x axis is whole seconds
+            trainer.logger.log_metrics({"val_vs_seconds/psnr": float(row["psnr"])},
+                                       int(round(self.wall)))
         if full and row["psnr"] > self.best_psnr:
             self.best_psnr = row["psnr"]
             trainer.save_checkpoint(str(self.out_dir / "checkpoints" / "best.ckpt"),
@@ -171,15 +179,16 @@ class HeldOutMonitor(L.Callback):
         if trainer.is_global_zero:
             self.curve.append(self.wall, step, row, kind)
 
-    def _log_images(self, trainer: L.Trainer, pl_module: Any, pred: np.ndarray, gt: np.ndarray,
+    def _log_images(self, trainer: L.Trainer, pl_module: Any, over_time: np.ndarray,
                     res: dict, step: int) -> None:
+        """TensorBoard images: view 0's render beside its ground truth at each evaluated
+        time (one row per time), its opacity and depth, and the measured vs rendered events."""
         exp = getattr(trainer.logger, "experiment", None)
         if exp is None or not hasattr(exp, "add_image"):
             return
         if self.image_every <= 0 or (step % self.image_every and step != trainer.max_steps):
             return
-        exp.add_image("heldout/render_vs_gt", np.concatenate([pred, gt], 1), step,
-                      dataformats="HWC")
+        exp.add_image("heldout/render_vs_gt", over_time, step, dataformats="HWC")
         exp.add_image("heldout/opacity", res["opacity"].cpu().numpy(), step, dataformats="HW")
         depth = res["depth"].cpu().numpy()
         exp.add_image("heldout/depth", depth / max(float(depth.max()), 1e-6), step,

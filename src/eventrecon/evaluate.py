@@ -28,14 +28,15 @@ from eventrecon.checkpointing import atomic_write_json
 from eventrecon.colour import linear_to_srgb
 from eventrecon.data.batcher import Segment, background_linear
 from eventrecon.data.properties import SceneProperties
-from eventrecon.data.selection import heldout_split
+from eventrecon.data.selection import heldout_split, window_frames
 from eventrecon.data.types import SplitData
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
-from eventrecon.metrics import evaluate_images, psnr
+from eventrecon.metrics import evaluate_images, psnr, subject_scores
+from eventrecon.progress import TaskProgress
 from eventrecon.records import run_info
 from eventrecon.render.volume import Renderer
-from eventrecon.segments import crossfade_weights, resolve_segments
+from eventrecon.segments import crossfade_weights, run_segments, run_window
 
 __all__ = ["render_heldout", "encode", "score_images", "cheap_psnr", "evaluate_heldout",
            "write_renders", "render_and_score", "evaluate_models", "evaluate_run",
@@ -58,6 +59,7 @@ def render_heldout(models: Sequence[tuple[Field, Renderer]], segments: Sequence[
     device = next(iter(models[0][0].parameters())).device
     H, W = split.cameras.height, split.cameras.width
     out = np.zeros((len(frame_idx), len(views), H, W, 3), np.float32)
+    progress = TaskProgress("held-out renders", len(frame_idx) * len(views))
     for a, f in enumerate(frame_idx):
         t = float(split.frame_times[f])
         for b, v in enumerate(views):
@@ -70,6 +72,7 @@ def render_heldout(models: Sequence[tuple[Field, Renderer]], segments: Sequence[
                                             bg[v].to(device), chunk=chunk)
                 img += w * res["rgb"].to(device)  # segments may live on different devices
             out[a, b] = img.clamp(0, 1).cpu().numpy()
+            progress.step()
     return out
 
 
@@ -102,8 +105,11 @@ def evaluate_heldout(renders_lin: np.ndarray, split: SplitData, views: Sequence[
     """PSNR / SSIM / LPIPS of the renders ``[F, V, H, W, 3]`` against the ground-truth PNGs.
 
     Also ``psnr_background``: the PSNR of the background alone (what a field with zero
-    density everywhere renders) on the same frames. A run whose PSNR is close to it has
-    learnt little of the scene; a low-contrast scene can score high with nothing in it.
+    density everywhere renders) on the same frames, and ``gain_psnr`` over it: a run
+    close to it has learnt little of the scene; a low-contrast scene can score high with
+    nothing in it. When the split has masks (the simulator's; ``mask/`` of a published
+    scene): ``psnr_subject``, ``ssim_subject`` on the subject's pixels, the empty field's
+    ``psnr_background_subject`` and ``gain_psnr_subject``.
     """
     bg = encode(background_linear(split).clamp(0, 1).numpy())
     preds, gts, empty = [], [], []
@@ -113,7 +119,18 @@ def evaluate_heldout(renders_lin: np.ndarray, split: SplitData, views: Sequence[
             gts.append(split.frames[f, v])
             empty.append(bg[v])
     result = score_images(preds, gts, lpips=lpips, color_correct=color_correct)
-    result["psnr_background"] = psnr(np.stack(empty), np.stack(gts).astype(np.float32) / 255.0)
+    gt_enc = np.stack(gts).astype(np.float32) / 255.0
+    result["psnr_background"] = psnr(np.stack(empty), gt_enc)
+    result["gain_psnr"] = result["psnr"] - result["psnr_background"]
+    if split.masks is not None:  # the subject's region at each evaluated time
+        masks = np.stack([split.masks[f, v] for f in frame_idx for v in views])
+        subject = subject_scores(np.stack([encode(p) for p in preds]), gt_enc, masks)
+        empty_subject = subject_scores(np.stack(empty), gt_enc, masks)
+        if subject:
+            result.update(subject)
+            result["psnr_background_subject"] = empty_subject["psnr_subject"]
+            result["gain_psnr_subject"] = (subject["psnr_subject"]
+                                           - empty_subject["psnr_subject"])
     return result
 
 
@@ -156,10 +173,11 @@ def run_device(cfg: DictConfig) -> torch.device:
 
 def evaluate_models(cfg: DictConfig, props: SceneProperties, heldout: SplitData,
                     segments: list[Segment], trained: dict[int, tuple[Field, Renderer]],
-                    out_dir: Path, device: torch.device) -> dict[str, Any]:
+                    out_dir: Path, device: torch.device,
+                    window: tuple[float, float] | None = None) -> dict[str, Any]:
     """Score a run's held-out views on ``device`` as configured (``data.eval_views``,
-    ``data.eval_every_frames``); segments not in ``trained`` are loaded from their
-    ``last.ckpt``."""
+    ``data.eval_every_frames``; only the frames inside ``window`` when given); segments
+    not in ``trained`` are loaded from their ``last.ckpt``."""
     models = []
     for k in range(len(segments)):
         field, renderer = (trained[k] if k in trained
@@ -167,7 +185,7 @@ def evaluate_models(cfg: DictConfig, props: SceneProperties, heldout: SplitData,
         models.append((field.to(device).eval(), renderer))
     views = (list(range(heldout.n_views)) if cfg.data.eval_views is None
              else list(cfg.data.eval_views))
-    frames = list(range(0, len(heldout.frame_times), int(cfg.data.eval_every_frames)))
+    frames = window_frames(heldout, window, int(cfg.data.eval_every_frames))
     return render_and_score(models, segments, heldout, views, frames, out_dir,
                             cfg.render.chunk)
 
@@ -193,12 +211,13 @@ def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False)
     heldout = heldout_split(ds)
     if heldout is None:
         raise InputError(ds.root, "validation/ or groundtruth/", "a held-out split to evaluate")
-    segments = resolve_segments(props.segments)
+    window = run_window(cfg)
+    segments = run_segments(cfg, props.segments)
     device = run_device(cfg)
     models = [(field.to(device), renderer) for field, renderer in
               (load_segment(cfg, props, run_dir / f"seg{k}", ckpt) for k in range(len(segments)))]
     views = list(range(heldout.n_views))
-    frames = list(range(len(heldout.frame_times)))
+    frames = window_frames(heldout, window)
     metrics = {**run_info(cfg, ds.meta), "checkpoint": ckpt,
                **render_and_score(models, segments, heldout, views, frames,
                                   run_dir / f"eval_{ckpt}", cfg.render.chunk, color_correct)}

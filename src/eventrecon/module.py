@@ -60,6 +60,8 @@ class StepConfig:
     n_rays: int = 256
     lr: float = 1e-4
     weight_decay: float = 0.0
+    betas: tuple[float, ...] = (0.9, 0.999)
+    eps: float = 1e-8
     max_nonfinite: int = 20
     log_every: int = 25
     seed: int = 0
@@ -96,6 +98,9 @@ class EventNeRFModule(L.LightningModule):
         self.nonfinite_total = 0
         self.stop_reason: str | None = None
         self.last_window: tuple[float, float] = (0.0, 1.0)  # (t0, t1) of the last step
+        #: ``(step, mean opacity)`` of the fine level's three renders, every ``log_every``
+        #: steps (the collapse check, :mod:`eventrecon.collapse`)
+        self.opacity_log: list[tuple[int, float]] = []
 
     def setup(self, stage: str) -> None:
         """Take the DataModule's batcher (built on this process's device)."""
@@ -108,10 +113,10 @@ class EventNeRFModule(L.LightningModule):
 
     # ------------------------------------------------------------------ optimiser
     def configure_optimizers(self) -> torch.optim.Optimizer:
-        """AdamW over the field's parameter groups (re-run by growth schedules)."""
-        groups = self.field.param_groups(self.step_cfg.lr)
-        return torch.optim.AdamW(groups, lr=self.step_cfg.lr,
-                                 weight_decay=self.step_cfg.weight_decay)
+        """AdamW over the field's parameter groups (re-run by growth schedules); constant lr."""
+        cfg = self.step_cfg
+        return torch.optim.AdamW(self.field.param_groups(cfg.lr), lr=cfg.lr,
+                                 weight_decay=cfg.weight_decay, betas=cfg.betas, eps=cfg.eps)
 
     # ------------------------------------------------------------------ training
     def render_three(self, batch: dict[str, Tensor], gen: torch.Generator | None,
@@ -148,6 +153,10 @@ class EventNeRFModule(L.LightningModule):
         self.nonfinite_in_row = 0
         # Lightning writes logged values at the end of steps with (step + 1) % every == 0
         if (step + 1) % max(1, self.step_cfg.log_every) == 0:
+            fine = levels[-1]
+            opacity = torch.stack([fine[f"opacity_{k}"].mean() for k in ("t0", "t1", "ref")])
+            terms["opacity"] = opacity.mean().detach()
+            self.opacity_log.append((step + 1, float(terms["opacity"])))
             for k, v in terms.items():
                 self.log(f"train/{k}", v.detach(), on_step=True, on_epoch=False)
             self.log("train/lr", self.trainer.optimizers[0].param_groups[0]["lr"],
@@ -182,6 +191,7 @@ class EventNeRFModule(L.LightningModule):
             "field_class": field_class_name(self.field),
             "clip_scale": float(self.renderer.clip_scale),
             "nonfinite_total": self.nonfinite_total,
+            "opacity_log": list(self.opacity_log),
         }
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
@@ -193,3 +203,6 @@ class EventNeRFModule(L.LightningModule):
                              f"a checkpoint of {mine} (this run's model)", meta["field_class"])
         self.renderer.clip_scale = meta.get("clip_scale", self.renderer.clip_scale)
         self.nonfinite_total = meta.get("nonfinite_total", 0)
+        step = int(checkpoint.get("global_step", 0))
+        self.opacity_log = [(int(s), float(o)) for s, o in meta.get("opacity_log", [])
+                            if int(s) <= step]

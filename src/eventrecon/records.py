@@ -3,18 +3,21 @@
 A run folder holds
 
 - ``metrics.json``: the run's identity (:data:`REQUIRED_KEYS`: ``scene, model, loss,
-  views, fps, status``; optionally ``experiment``, ``tag``, ``seed``) and, once
+  views, fps, status``; optionally ``experiment``, ``tag``, ``seed``, and what it changed
+  from the paper's method: ``schedule``, ``skip``, ``sizing``) and, once
   evaluated, ``psnr, ssim, lpips`` (``lpips`` may be null with an ``lpips_note``),
   ``psnr_background`` (the empty field's score on the same frames), ``wall_s``,
   ``steps``, ``sec_per_it``, ``peak_mem_mb``, ``total_s``. ``status`` is one of
-  :data:`STATUSES`: ``ok``; ``failed`` (with ``error``); ``partial`` (some segments of
-  a ``data.segment=K`` sweep are still to train; never written, only returned);
+  :data:`STATUSES`: ``ok``; ``collapsed`` (the field renders the empty scene,
+  :mod:`eventrecon.collapse`, with ``collapse_reason``); ``failed`` (with ``error``);
+  ``partial`` (some segments of a ``data.segment=K`` sweep are still to train; never
+  written, only returned);
 - ``curve.csv``: :data:`CURVE_HEADER` rows, ``kind`` = ``cheap`` (a subsampled held-out
   image) or ``full``; an empty cell is a missing value. Written per segment
   (``seg<k>/curve.csv``, the segment's own steps and training seconds) and, once the
   run is done, for the whole run (:func:`stitch_curves`);
 - ``seg<k>/done.json``: a trained segment — ``max_steps`` (its budget), ``steps``,
-  ``wall_s``, ``nonfinite_steps``.
+  ``wall_s``, ``nonfinite_steps``, ``opacity_log`` (``[step, mean opacity]`` pairs).
 
 Readers (:mod:`eventrecon.report.runs`) and writers (the runner, the held-out monitor)
 both use the names and functions here, so the format has one definition.
@@ -32,6 +35,7 @@ from typing import Any
 
 from eventrecon.checkpointing import atomic_write_bytes, atomic_write_json
 from eventrecon.errors import InputError
+from eventrecon.naming import dataset_name, name_from_meta
 
 __all__ = ["METRICS_FILE", "CURVE_FILE", "DONE_FILE", "CURVE_HEADER", "REQUIRED_KEYS",
            "STATUSES", "run_info", "write_metrics", "read_metrics", "finished_metrics",
@@ -44,7 +48,9 @@ DONE_FILE = "done.json"
 CURVE_HEADER: tuple[str, ...] = ("wall_s", "step", "psnr", "ssim", "lpips", "kind")
 REQUIRED_KEYS: tuple[str, ...] = ("scene", "model", "loss", "views", "fps", "status")
 #: Statuses a ``metrics.json`` may carry.
-STATUSES: tuple[str, ...] = ("ok", "failed")
+STATUSES: tuple[str, ...] = ("ok", "collapsed", "failed")
+#: Statuses of a run that trained and was evaluated (a sweep does not run it again).
+FINISHED: tuple[str, ...] = ("ok", "collapsed")
 #: Keys written as ``null`` when a record does not have them (the report reads them).
 OPTIONAL_KEYS: tuple[str, ...] = ("psnr", "ssim", "lpips", "lpips_note", "wall_s", "steps",
                                   "sec_per_it", "peak_mem_mb", "error")
@@ -54,13 +60,29 @@ OPTIONAL_KEYS: tuple[str, ...] = ("psnr", "ssim", "lpips", "lpips_note", "wall_s
 def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
              fps: float | None = None) -> dict[str, Any]:
     """What identifies a run in the reports: scene, model, loss, views, fps, experiment,
-    tag and seed (``cfg`` is the run's composed config, ``meta`` the dataset's)."""
-    return {"scene": meta.get("scene_name") or cfg.scene.get("name", "custom"),
+    tag and seed (``cfg`` is the run's composed config, ``meta`` the dataset's). The scene
+    is the dataset's own name for a ``data.root`` run (:mod:`eventrecon.naming`)."""
+    name = (dataset_name(cfg.data.root, None) if cfg.data.get("root")
+            else name_from_meta(meta) or cfg.scene.get("name", "custom"))
+    return {"scene": name,
             "model": cfg.model.get("name") or str(cfg.model.get("_target_")),
             "loss": cfg.loss.get("name", "full"),
             "views": views if views is not None else cfg.data.views,
             "fps": fps if fps is not None else (cfg.data.fps or meta.get("rgb_fps")),
-            "experiment": cfg.get("sweep_name"), "tag": cfg.get("tag")}
+            "experiment": cfg.get("sweep_name"), "tag": cfg.get("tag"), "seed": cfg.get("seed"),
+            # what the run changed from the paper's method (the tables footnote it)
+            "schedule": cfg.trainer.get("schedule"), "skip": cfg.render.get("skip"),
+            "sizing": _sizing_choice()}
+
+
+def _sizing_choice() -> str | None:
+    """The ``sizing`` config picked for this run (``cpu_nerf`` ...), inside a Hydra app."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return HydraConfig.get().runtime.choices.get("sizing")
+    except Exception:  # noqa: BLE001 - outside a Hydra app: unknown
+        return None
 
 
 def write_metrics(folder: str | Path, metrics: Mapping[str, Any]) -> Path:
@@ -92,24 +114,25 @@ def read_metrics(path: str | Path) -> dict[str, Any]:
 
 def finished_metrics(path: str | Path, max_steps: int, evaluate: bool,
                      steps: int | None = None) -> dict | None:
-    """``metrics.json`` of the same finished run (status ok, the same ``max_steps`` and,
-    when given, the same ``steps``; scored if ``evaluate``), else ``None``."""
+    """``metrics.json`` of the same finished run (status ok or collapsed, the same
+    ``max_steps`` and, when given, the same ``steps``; scored if ``evaluate``), else ``None``."""
     path = Path(path)
     if not path.exists():
         return None
     done = json.loads(path.read_text())
-    same = (done.get("status") == "ok" and done.get("max_steps") == int(max_steps)
+    same = (done.get("status") in FINISHED and done.get("max_steps") == int(max_steps)
             and (steps is None or done.get("steps") == steps))
     return done if same and (not evaluate or done.get("psnr") is not None) else None
 
 
 # ---------------------------------------------------------------------------- done.json
 def write_done(seg_dir: str | Path, max_steps: int, steps: int, wall_s: float,
-               nonfinite_steps: int) -> None:
-    """Record a trained segment (``seg<k>/done.json``)."""
+               nonfinite_steps: int, opacity_log: Iterable[tuple[int, float]] = ()) -> None:
+    """Record a trained segment (``seg<k>/done.json``), with its logged mean opacity."""
     atomic_write_json(Path(seg_dir) / DONE_FILE, {
         "max_steps": int(max_steps), "steps": int(steps), "wall_s": float(wall_s),
-        "nonfinite_steps": int(nonfinite_steps)})
+        "nonfinite_steps": int(nonfinite_steps),
+        "opacity_log": [[int(s), float(o)] for s, o in opacity_log]})
 
 
 def read_done(seg_dir: str | Path, max_steps: int | None = None) -> dict | None:

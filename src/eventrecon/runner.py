@@ -31,6 +31,7 @@ from eventrecon.build import (
 )
 from eventrecon.callbacks import HeldOutMonitor
 from eventrecon.checkpointing import AtomicCheckpointIO, remove_stale_temporaries
+from eventrecon.collapse import CollapseRule, collapse_reason
 from eventrecon.data.batcher import Segment
 from eventrecon.data.datamodule import SegmentDataModule
 from eventrecon.data.properties import SceneProperties
@@ -41,7 +42,9 @@ from eventrecon.evaluate import evaluate_models, run_device
 from eventrecon.locks import exclusive
 from eventrecon.memory import peak_mb, reset_peak
 from eventrecon.module import EventNeRFModule
-from eventrecon.segments import resolve_segments, segment_config, segment_steps
+from eventrecon.progress import Progress
+from eventrecon.render.occupancy import OccupancyUpdate
+from eventrecon.segments import run_segments, run_window, segment_config, segment_steps
 
 __all__ = ["run", "train_segment", "flat_hparams"]
 
@@ -116,8 +119,8 @@ def _resume_checkpoint(cfg: DictConfig, seg_dir: Path, module: EventNeRFModule,
 
 
 def train_segment(cfg: DictConfig, props: SceneProperties, train: SplitData,
-                  heldout: SplitData | None, k: int, seg: Segment, out_dir: Path
-                  ) -> tuple[EventNeRFModule, float]:
+                  heldout: SplitData | None, k: int, seg: Segment, out_dir: Path,
+                  n_segments: int = 1) -> tuple[EventNeRFModule, float]:
     """Train (or resume) segment ``k`` for ``cfg.trainer.max_steps`` steps (a config from
     :func:`~eventrecon.segments.segment_config`); returns the module and the segment's
     training seconds (a resumed segment counts the time before the interruption too)."""
@@ -126,12 +129,16 @@ def train_segment(cfg: DictConfig, props: SceneProperties, train: SplitData,
     module = build_module(cfg, props, None, seg, k)
     data = SegmentDataModule(train, seg, props.decay, props.bayer, cfg.data.neg_ratio)
     callbacks = list(module.field.callbacks())
+    if module.renderer.occupancy is not None:
+        callbacks.append(OccupancyUpdate(cfg.seed + 1000 * k))
     monitor = None
     if heldout is not None:
         monitor = HeldOutMonitor(heldout, seg, seg_dir, cfg.trainer.curve_every,
                                  cfg.trainer.eval_every, cfg.trainer.image_every,
                                  cfg.trainer.curve_pixels, cfg.render.chunk, cfg.seed)
         callbacks.append(monitor)
+    callbacks.append(Progress(k, n_segments, cfg.trainer.get("progress", "auto"),
+                              cfg.trainer.get("progress_every_s", 30.0), monitor))
     trainer = _trainer(cfg, seg_dir, callbacks, k)
     ckpt = _resume_checkpoint(cfg, seg_dir, module, k)
     t = time.perf_counter()
@@ -140,6 +147,26 @@ def train_segment(cfg: DictConfig, props: SceneProperties, train: SplitData,
         trainer.save_checkpoint(str(seg_dir / "checkpoints" / "last.ckpt"), weights_only=False)
     wall = monitor.wall if monitor is not None else time.perf_counter() - t
     return module, wall
+
+
+#: Final scores shown in TensorBoard (``final/<key>``), when the run has them.
+FINAL_SCALARS: tuple[str, ...] = ("psnr", "ssim", "lpips", "psnr_background", "gain_psnr",
+                                  "psnr_subject", "ssim_subject", "gain_psnr_subject")
+
+
+def _log_final(cfg: DictConfig, out_dir: Path, metrics: dict[str, Any]) -> None:
+    """The held-out scores, full-frame and on the subject, as TensorBoard scalars of the
+    run (``<out>/tb/final``, step = the run's total steps)."""
+    if not cfg.logger or "TensorBoard" not in str(cfg.logger.get("_target_", "")):
+        return
+    from torch.utils.tensorboard import SummaryWriter
+
+    with SummaryWriter(str(out_dir / "tb" / "final")) as w:
+        for key in FINAL_SCALARS:
+            if isinstance(metrics.get(key), (int, float)):
+                w.add_scalar(f"final/{key}", float(metrics[key]), int(metrics.get("steps", 0)))
+        w.add_scalar("final/collapsed", float(metrics.get("status") == "collapsed"),
+                     int(metrics.get("steps", 0)))
 
 
 def _global_rank() -> int:
@@ -168,9 +195,11 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
     if "train" not in ds.splits:
         raise InputError(ds.root, "train/", "a training split")
     props = scene_properties(cfg, ds)
-    train = training_split(ds, cfg.data.views, cfg.data.fps, props.duration_s)
+    window = run_window(cfg)
+    train = training_split(ds, cfg.data.views, cfg.data.fps, props.duration_s,
+                           window or (0.0, 1000.0))
     heldout = heldout_split(ds)
-    segments = resolve_segments(props.segments)
+    segments = run_segments(cfg, props.segments)
     if cfg.data.segment is not None and not 0 <= int(cfg.data.segment) < len(segments):
         raise InputError("config", "data.segment",
                          f"a segment index in [0, {len(segments) - 1}]", cfg.data.segment)
@@ -191,10 +220,12 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
             log.info("segment %d: trained before (%s), not trained again", k,
                      seg_dir / records.DONE_FILE)
             continue
-        module, wall = train_segment(seg_cfg, props, train, heldout, k, segments[k], out_dir)
+        module, wall = train_segment(seg_cfg, props, train, heldout, k, segments[k], out_dir,
+                                     len(segments))
         if _global_rank() != 0:
             continue  # DDP: rank 0 records and evaluates
-        records.write_done(seg_dir, steps, module.global_step, wall, module.nonfinite_total)
+        records.write_done(seg_dir, steps, module.global_step, wall, module.nonfinite_total,
+                           module.opacity_log)
         trained[k] = (module.field, module.renderer)
     if _global_rank() != 0:
         return {**info, "status": "ok", "error": None, "rank": _global_rank()}
@@ -222,7 +253,14 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
             records.write_curve(out_dir / records.CURVE_FILE, rows)
         if cfg.evaluate and heldout is not None:
             metrics.update(evaluate_models(seg_cfg, props, heldout, segments, trained, out_dir,
-                                           device))
+                                           device, window))
+        reason = collapse_reason([d.get("opacity_log", []) for d in dones], metrics.get("psnr"),
+                                 metrics.get("psnr_background"),
+                                 CollapseRule(**cfg.trainer.get("collapse", {})))
+        if reason is not None:
+            metrics.update(status="collapsed", collapse_reason=reason)
+            log.warning("run collapsed to the empty field: %s", reason)
+        _log_final(cfg, out_dir, metrics)
         metrics["peak_mem_mb"] = peak_mb(cuda=device.type == "cuda")
         metrics["total_s"] = time.perf_counter() - t_start
         records.write_metrics(out_dir, metrics)

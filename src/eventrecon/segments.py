@@ -25,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 from eventrecon.data.batcher import Segment
 
 __all__ = ["make_segments", "crossfade_weights", "resolve_segments", "segment_steps",
-           "segment_config"]
+           "segment_config", "run_window", "run_segments"]
 
 
 def make_segments(n: int, overlap: float = 20.0, span: float = 1000.0) -> list[Segment]:
@@ -93,7 +93,24 @@ def segment_steps(cfg: DictConfig, n_segments: int) -> int:
 
 def segment_config(cfg: DictConfig, steps: int) -> DictConfig:
     """``cfg`` with ``trainer.max_steps`` = the segment's own steps, so that schedules written
-    as fractions of the run (``${of_run:f}``) take the shape of the run each model trains."""
+    compressed to the run (``${paper_steps:N}`` with ``trainer.schedule=compressed``) take
+    the shape of the run each model trains."""
     if int(cfg.trainer.max_steps) == steps and not cfg.trainer.get("split_steps"):
         return cfg
     return OmegaConf.merge(cfg, {"trainer": {"max_steps": steps, "split_steps": False}})
+
+
+def run_window(cfg: DictConfig) -> tuple[float, float] | None:
+    """The run's ``data.window`` as ``(t0, t1)`` time units, or ``None``."""
+    window = cfg.data.get("window")
+    return (float(window[0]), float(window[1])) if window else None
+
+
+def run_segments(cfg: DictConfig, dataset_segments: Sequence[Sequence[float]] | None
+                 ) -> list[Segment]:
+    """The segments a run trains: ``data.segments`` when set, else the ``data.window``
+    alone when set, else the dataset's (``dataset_segments``, which already has
+    ``data.segments`` applied over ``meta.json``)."""
+    window = run_window(cfg)
+    explicit = cfg.data.get("segments") is not None
+    return resolve_segments(dataset_segments if explicit or window is None else [window])

@@ -2,7 +2,11 @@
 
 The ablations of supplementary Tab. 5–7 train on fewer RGB frames (``data.fps``) or
 fewer views (``data.views``) of the same scene; both selections are made here, on the
-loaded split, so every other part of the run sees an ordinary (smaller) split.
+loaded split, so every other part of the run sees an ordinary (smaller) split. A time
+``data.window`` (the authors' real-data runs train and evaluate one 120-unit window of
+the clip, e.g. [90, 210] for Tab. 4) is the run's segment unless ``data.segments`` is
+set (the "w/o multi-segment" row trains [0, 1000] and is evaluated on the window), and
+only its ground-truth frames are scored.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ from eventrecon.data.types import Dataset, SplitData
 from eventrecon.errors import InputError
 
 __all__ = ["heldout_split", "check_training_split", "select_views", "select_fps",
-           "training_split"]
+           "training_split", "window_frames"]
 
 
 def heldout_split(ds: Dataset) -> SplitData | None:
@@ -60,12 +64,16 @@ def select_views(split: SplitData, n: int | None) -> SplitData:
         masks=None if split.masks is None else split.masks[:, idx])
 
 
-def select_fps(split: SplitData, fps: float | None, duration_s: float) -> SplitData:
-    """The frames nearest to the grid ``k · 1000 / (fps · duration_s)``, ``k < fps · duration_s``.
+def select_fps(split: SplitData, fps: float | None, duration_s: float,
+               window: tuple[float, float] = (0.0, 1000.0)) -> SplitData:
+    """The frames nearest to the grid ``start + k · 1000 / (fps · duration_s)`` of the time
+    ``window = (start, end)`` (time units), ``k < fps · D_w`` with ``D_w`` the window's
+    length in seconds.
 
-    A rate ``F`` over a clip of ``D`` seconds keeps ``max(1, floor(F·D))`` frames (the grid
-    is half-open, like a camera's shutter): 0.5 FPS over 2 s is one set of frames, as in
-    the supplementary's 0.5 FPS row of Tab. 5. The dataset's own rate keeps every frame.
+    A rate ``F`` over ``D_w`` seconds keeps ``max(1, floor(F·D_w))`` frames (the grid is
+    half-open, like a camera's shutter): 0.5 FPS over 2 s is one set of frames, as in the
+    supplementary's 0.5 FPS row of Tab. 5, and so is 0.5 FPS over a 0.5 s window. The
+    dataset's own rate keeps every frame.
     """
     if fps is None:
         return split
@@ -82,17 +90,21 @@ def select_fps(split: SplitData, fps: float | None, duration_s: float) -> SplitD
         raise InputError("config", "data.fps", f"at most the dataset's {native:g} FPS", fps)
     if step <= native_step + tol:
         return split
-    n = max(1, int(math.floor(fps * duration_s + 1e-9)))
-    grid = np.arange(n) * step
+    start, end = float(window[0]), float(window[1])
+    seconds = duration_s * (end - start) / 1000.0
+    n = max(1, int(math.floor(fps * seconds + 1e-9)))
+    grid = start + np.arange(n) * step
     keep = sorted({int(np.argmin(np.abs(times - g))) for g in grid})
     return replace(split, frame_times=times[keep], frames=split.frames[keep],
                    masks=None if split.masks is None else split.masks[keep])
 
 
 def training_split(ds: Dataset, views: int | None, fps: float | None,
-                   duration_s: float | None) -> SplitData:
-    """``ds``'s training split with ``views`` views and ``fps`` RGB frames per second,
-    checked to have events and frames (:func:`check_training_split`)."""
+                   duration_s: float | None,
+                   window: tuple[float, float] = (0.0, 1000.0)) -> SplitData:
+    """``ds``'s training split with ``views`` views and ``fps`` RGB frames per second (on a
+    grid starting at the ``window``'s start), checked to have events and frames
+    (:func:`check_training_split`)."""
     if "train" not in ds.splits:
         raise InputError(ds.root, "train/", "a training split")
     check_training_split(ds.splits["train"])
@@ -100,4 +112,19 @@ def training_split(ds: Dataset, views: int | None, fps: float | None,
     if fps is not None and duration_s is None:
         raise InputError("config", "data.duration_s", "the clip's length in seconds (data.fps "
                          "needs it; the dataset's meta.json does not say)", "missing")
-    return select_fps(train, fps, duration_s or 1.0)
+    return select_fps(train, fps, duration_s or 1.0, window)
+
+
+def window_frames(split: SplitData, window: tuple[float, float] | None,
+                  every: int = 1) -> list[int]:
+    """Indices of the split's frames inside ``window`` (all without one), every ``every``-th.
+
+    >>> from types import SimpleNamespace
+    >>> s = SimpleNamespace(frame_times=np.arange(0, 1001, 50.0))
+    >>> window_frames(s, (90, 210)), len(window_frames(s, None, every=2))
+    ([2, 3, 4], 11)
+    """
+    times = np.asarray(split.frame_times, dtype=np.float64)
+    idx = (np.arange(len(times)) if window is None else
+           np.flatnonzero((times >= window[0]) & (times <= window[1])))
+    return [int(i) for i in idx[::max(1, int(every))]]
