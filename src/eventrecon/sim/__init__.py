@@ -11,7 +11,9 @@ Modules, in data-flow order:
 - :mod:`~eventrecon.sim.tracer`, :mod:`~eventrecon.sim.raytrace` batched ray casting through
   the object hierarchy, Lambertian shading, per-ray time, subject masks
 - :mod:`~eventrecon.sim.spec`     the scene-level settings, rig cameras, frame times
-- :mod:`~eventrecon.sim.ideal`    the event core (adaptive sampling, interpolated crossings)
+- :mod:`~eventrecon.sim.ideal`, :mod:`~eventrecon.sim.paths`, :mod:`~eventrecon.sim.merge`,
+  :mod:`~eventrecon.sim.core_settings` the event core (adaptive sampling with a curvature
+  bound and refined turns, interpolated crossings, time ordering without a global sort)
 - :mod:`~eventrecon.sim.registry`, :mod:`~eventrecon.sim.event_effects`,
   :mod:`~eventrecon.sim.frame_effects` sensor effects by name, in the scene's order
 - :mod:`~eventrecon.sim.event_sim`, :mod:`~eventrecon.sim.frames` events / frames of a rig

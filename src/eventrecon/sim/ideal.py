@@ -2,36 +2,47 @@
 
 Per pixel ``g`` the core follows ``L_g(t)`` (``log(I + ε)`` of the pixel's channel, after
 an optional low-pass filter) from ``t = 0`` to ``1`` with its own step size. The
-reference level starts at ``r = L_g(0)``. Between two accepted samples
-``(t_a, L_a) → (t_b, L_b)`` the signal is taken as linear; while ``L_b ≥ r + θ_on`` an
-ON event is emitted at
+reference level starts at ``r = L_g(0)``; the samples, joined by straight legs, form the
+pixel's *path*, and while a leg reaches ``L ≥ r + θ_on`` an ON event is emitted and
+``r ← r + θ_on`` (OFF alike with ``θ_off``) -- at a float64 time interpolated on the
+pixel's own samples (:mod:`~eventrecon.sim.paths`: a cubic through the leg and its
+neighbours, one Newton step from the straight-leg time).
 
-.. math:: t_e = t_a + \\frac{r + θ_{on} - L_a}{L_b - L_a}\\,(t_b - t_a),\\qquad r ← r + θ_{on}
+**Sampling is adaptive.** A sample is kept only if the raw and the filtered signal change
+by at most ``β = max_log_step·θ`` and the slope changes by at most ``max_curvature·β``
+per step (the second difference ``|ΔL_k − ΔL_{k−1}·h_k/h_{k−1}| ≤ max_curvature·β``;
+a straight leg then cuts an extremum by at most ``max_curvature·β/8``). Each iteration
+evaluates a block of up to ``block`` samples per pixel (steps ``h``, or ``h, 2h, 4h, …``
+after an easy block; at most ``max_step``) and keeps the prefix before the first rejected
+one. The next step aims at ``0.95·β`` per step, predicted from the last step and its
+change; a rejection shrinks it in proportion. A jump (a change above ``4β`` that does not
+shrink with the step) is bracketed by bisection, one sample per iteration, down to
+``min_step``, where a sample is kept as is: only true discontinuities get there, and
+their crossings are stamped within ``min_step`` of the jump.
 
-(OFF symmetric with ``θ_off``), so every crossing gets its own interpolated float64 time.
+**Turns.** Where the steps change sign the extremum between samples is located (parabolic
+interpolation, evaluated) whenever a level lies within reach, and a level the true
+signal passes by more than about ``turn_tol·θ`` is crossed (:mod:`~eventrecon.sim.paths`).
 
-**Sampling is adaptive** (not merely checked): a step is accepted only if the raw and
-the filtered log signal change by at most ``max_log_step·θ``; otherwise it is halved
-(rendering only the pixels that need it) down to ``min_step``, where a step is accepted
-as is -- that only happens at true discontinuities (an edge crossing a pixel centre),
-and those crossings are then stamped within ``min_step`` of the jump. After an easy step
-(change ≤ half the bound) the step doubles again, up to ``max_step``, which also bounds
-how long a feature can hide between two samples.
-
-The core never loops over events in Python: each iteration advances all pixels that are
-still running, and crossings are emitted in "rounds" (the k-th crossing of every pixel
-in its current interval at once), usually one round per iteration.
+**Order.** Each pixel's events come in time order; the events of all pixels are put in
+``(t, g)`` order by counting sorts (:func:`~eventrecon.sim.merge.merge_by_time`), the
+result equal to a global ``lexsort``. :func:`frame_events` is the frame-fed counterpart:
+the crossings of the log signal linear between given frames.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["CoreSettings", "SignalSetup", "CoreResult", "run_core", "crossings"]
+from eventrecon.sim.core_settings import CoreSettings, SignalSetup
+from eventrecon.sim.merge import merge_by_time, time_order
+from eventrecon.sim.paths import PathState, commit
+
+__all__ = ["CoreSettings", "SignalSetup", "CoreResult", "run_core", "crossings", "frame_events"]
 
 log = logging.getLogger(__name__)
 
@@ -40,49 +51,16 @@ SignalFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 
 
 @dataclass
-class CoreSettings:
-    """Sampling settings (times normalised to ``[0, 1]``).
-
-    Attributes:
-        threshold: nominal θ (the step bound is ``max_log_step·threshold``).
-        max_log_step: fraction of θ a step may change the log signal by.
-        max_step, min_step: largest / smallest step.
-    """
-
-    threshold: float = 0.5
-    max_log_step: float = 0.25
-    max_step: float = 2e-3
-    min_step: float = 1e-7
-
-
-@dataclass
-class SignalSetup:
-    """What the signal-stage effects configure (arrays over all global pixels).
-
-    Attributes:
-        theta_on, theta_off: ``[P_all]`` per-pixel thresholds (frozen part).
-        redraw: ``redraw(g [K]) -> (on [K], off [K])`` new thresholds after an event.
-        lowpass: ``lowpass(y_a, u_a, u_b, dt) -> y_b`` filter step over ``dt`` (normalised
-            time) with input linear from ``u_a`` to ``u_b`` and output ``y_a`` at the start.
-        channel_weights: ``[P_all, 3]`` linear weights giving the pixel's intensity.
-    """
-
-    theta_on: np.ndarray
-    theta_off: np.ndarray
-    channel_weights: np.ndarray
-    redraw: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
-    lowpass: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None
-
-
-@dataclass
 class CoreResult:
     """Events (sorted by ``t``, ties by pixel) and sampling statistics.
 
     Attributes:
         g: ``[E]`` int64 global pixel; t: ``[E]`` float64 normalised time; p: ``[E]`` int8.
-        n_samples: rendered pixel samples (accepted + rejected, including ``t = 0``).
-        n_forced: steps accepted at ``min_step`` above the bound (discontinuities).
-        samples: if requested, ``(g, t, L)`` of every accepted sample (filtered signal).
+        n_samples: rendered pixel samples (accepted + rejected + turn refinements,
+            including ``t = 0``).
+        n_forced: samples accepted at ``min_step`` above the bounds (discontinuities).
+        samples: if requested, ``(g, t, L)`` of every path sample (filtered signal).
+        extra: ``turn_samples`` (refinement evaluations) and what callers add.
     """
 
     g: np.ndarray
@@ -129,53 +107,177 @@ def crossings(g: np.ndarray, ta: np.ndarray, tb: np.ndarray, La: np.ndarray, Lb:
     return out, ref, th_on, th_off
 
 
-def _skip_calm(act: np.ndarray, t_cur: np.ndarray, dt: np.ndarray, L_raw: np.ndarray,
-               L_f: np.ndarray, busy: np.ndarray, tol: float, max_step: float) -> np.ndarray:
-    """Move pixels in a non-busy interval (filter settled) to the start of their next busy
-    interval (or 1); return the active pixels still to be rendered now."""
-    K = busy.shape[1]
-    k = np.minimum(np.floor(t_cur[act] * K + 1e-9).astype(np.int64), K - 1)
-    calm = ~busy[act, k] & (np.abs(L_f[act] - L_raw[act]) <= tol)
-    if not calm.any():
-        return act
-    ci, kk = act[calm], k[calm]
-    later = busy[ci] & (np.arange(K)[None, :] > kk[:, None])
-    j = np.where(later.any(1), later.argmax(1), K)
-    t_cur[ci] = np.where(j >= K, 1.0, j / K)
-    dt[ci] = max_step
-    return act[~calm]
+def frame_events(frames: np.ndarray | Sequence[np.ndarray], times: np.ndarray,
+                 theta_on: float | np.ndarray, theta_off: float | np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Frame-fed emission: the crossings of the log signal linear between frames.
 
+    Args:
+        frames: ``[T, P]`` float64 log frames ``L_k`` at ``times[k]`` (or ``T`` arrays).
+        times: ``[T]`` increasing frame times.
+        theta_on, theta_off: thresholds, scalars or ``[P]``.
 
-def _advance(signal: SignalFn, pix: np.ndarray, act: np.ndarray, t_cur: np.ndarray,
-             dt: np.ndarray, L_raw: np.ndarray, L_f: np.ndarray, ref: np.ndarray,
-             th_on: np.ndarray, th_off: np.ndarray, setup: SignalSetup,
-             settings: CoreSettings, record: bool) -> tuple[list, tuple | None, int]:
-    """One adaptive step of the pixels ``act`` (state arrays updated in place).
+    Returns:
+        ``(g [E] int64, t [E] float64, p [E] int8)`` in ``(t, g)`` order: from frame ``k``
+        to ``k+1`` every crossing of ``r + θ_on`` (then ``r ← r + θ_on``; OFF alike) at
+        ``t_k + (r + θ_on − L_k)/(L_{k+1} − L_k)·(t_{k+1} − t_k)``, as :func:`crossings`.
+        Each interval's events are ordered by :func:`~eventrecon.sim.merge.time_order`
+        (counting sorts); the intervals follow each other, so no global sort is needed.
 
-    Returns ``(events, accepted samples or None, number of forced steps)``.
+    >>> g, t, p = frame_events(np.array([[0., 0.], [1.2, -0.6]]), np.array([0., 1.]), .5, .5)
+    >>> g.tolist(), t.round(4).tolist(), p.tolist()
+    ([0, 0, 1], [0.4167, 0.8333, 0.8333], [1, 1, -1])
     """
-    bound = settings.max_log_step * settings.threshold
-    ta = t_cur[act]
-    tb = np.minimum(ta + dt[act], 1.0)
-    tb[tb > 1.0 - 1e-12] = 1.0
-    Lb = signal(pix[act], tb)
-    Lfb = Lb if setup.lowpass is None else setup.lowpass(L_f[act], L_raw[act], Lb, tb - ta)
-    change = np.maximum(np.abs(Lb - L_raw[act]), np.abs(Lfb - L_f[act]))
-    forced = dt[act] <= settings.min_step * (1 + 1e-9)
-    ok = (change <= bound) | forced
-    n_forced = int(np.count_nonzero(forced & (change > bound)))
-    rej = act[~ok]
-    dt[rej] = np.maximum(dt[rej] * 0.5, settings.min_step)
-    acc = act[ok]
-    if not acc.size:
-        return [], None, n_forced
-    ev, ref[acc], th_on[acc], th_off[acc] = crossings(
-        pix[acc], ta[ok], tb[ok], L_f[acc], Lfb[ok], ref[acc], th_on[acc], th_off[acc],
-        setup.redraw)
-    t_cur[acc], L_raw[acc], L_f[acc] = tb[ok], Lb[ok], Lfb[ok]
-    easy = acc[change[ok] <= 0.5 * bound]
-    dt[easy] = np.minimum(dt[easy] * 2.0, settings.max_step)
-    return ev, ((pix[acc], tb[ok], Lfb[ok]) if record else None), n_forced
+    times = np.asarray(times, dtype=np.float64)
+    La = np.asarray(frames[0], dtype=np.float64)
+    on, off = (np.asarray(th, dtype=np.float64) for th in (theta_on, theta_off))
+    hi, lo = La + on, La - off                   # ref ± θ; ref − θ_off < L_a < ref + θ_on
+    parts: list = []
+    for k in range(times.size - 1):
+        Lb = np.asarray(frames[k + 1], dtype=np.float64)
+        ta, dt = times[k], times[k + 1] - times[k]
+        cand = np.flatnonzero((Lb >= hi) | (Lb <= lo))
+        gs, ts, ps = [], [], []
+        while cand.size:
+            b, h_c, l_c = Lb[cand], hi[cand], lo[cand]
+            up = b >= h_c
+            level = np.where(up, h_c, l_c)
+            gs.append(cand)
+            ts.append(ta + np.minimum((level - La[cand]) / (b - La[cand]), 1.0) * dt)
+            ps.append(np.where(up, np.int8(1), np.int8(-1)))
+            hi[cand] = level + (on if on.ndim == 0 else on[cand])
+            lo[cand] = level - (off if off.ndim == 0 else off[cand])
+            cand = cand[np.where(up, b >= hi[cand], b <= lo[cand])]
+        if gs:
+            g, t, p = np.concatenate(gs), np.concatenate(ts), np.concatenate(ps)
+            o = time_order(t, g)
+            parts.append((g[o], t[o], p[o]))
+        La = Lb
+    if not parts:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int8)
+    g, t, p = (np.concatenate([q[i] for q in parts]) for i in range(3))
+    # intervals follow in time; only stamps rounded onto a frame time may tie across two
+    for b in np.flatnonzero((t[1:] == t[:-1]) & (g[1:] < g[:-1])):
+        a, e = np.searchsorted(t, t[b]), np.searchsorted(t, t[b], side="right")
+        o = a + np.argsort(g[a:e], kind="stable")
+        g[a:e], t[a:e], p[a:e] = g[o], t[o], p[o]
+    return g.astype(np.int64, copy=False), t, p
+
+
+# ----------------------------------------------------------------- the adaptive core
+# Blocks are laid out [sample, pixel] (one row per sample index, contiguous); ``sel``
+# addresses pixels of the state (a slice or an index array).
+
+_STEPS = np.arange(1.0, 65.0)[:, None]
+_POW2 = 2.0 ** np.arange(64)
+_FIRST = np.arange(64, 0, -1, dtype=np.int8)[:, None]   # M − k: first flagged row k
+_TARGET = 0.95                                          # aimed-for fraction of the bounds
+
+
+def _sample(signal: SignalFn, st: PathState, sel, setup: SignalSetup, s: CoreSettings,
+            stats: dict) -> tuple:
+    """Evaluate a block ``[M, N]`` of the pixels ``sel``, keep its prefix before the first
+    rejected sample, choose the next step. Returns ``(T, Lr, Lf, D, n_acc [N])``, ``D``
+    the steps of ``Lf``."""
+    M, bound = s.block, s.max_log_step * s.threshold
+    h0, t0, gr, n_valid = st.h[sel].copy(), st.t[2, sel], st.grow[sel], st.m[sel]
+    N, ar = h0.size, np.arange(h0.size)
+    T = t0 + _STEPS[:M] * h0
+    odd = gr | (n_valid < M)                 # steps h, 2h, 4h, … (at most max_step)
+    if gr.any():
+        T[:, gr] = t0[gr] + np.cumsum(np.minimum(_POW2[:M, None] * h0[gr], s.max_step), 0)
+    if T[-1].max() >= 1.0 - 1e-12:
+        end = T >= 1.0 - 1e-12
+        T[end] = 1.0
+        n_valid = np.minimum(n_valid, M - end.sum(0) + 1)
+        odd |= end[-1]
+    short = np.flatnonzero(n_valid < M)      # rows beyond n_valid repeat the last sample
+    if short.size:
+        T[:, short] = T[np.minimum(np.arange(M)[:, None], n_valid[short] - 1), short]
+    g = np.tile(st.pix[sel], M)
+    if short.size and n_valid.sum() < 0.8 * N * M:
+        kk = np.flatnonzero(_STEPS[:M] <= n_valid)
+        Lr = np.empty((M, N))
+        Lr.ravel()[kk] = signal(g[kk], T.ravel()[kk])
+        Lr[:, short] = Lr[np.minimum(np.arange(M)[:, None], n_valid[short] - 1), short]
+        stats["n_samples"] += kk.size
+    else:
+        Lr = signal(g, T.ravel()).reshape(M, N)
+        stats["n_samples"] += N * M
+    Lf = Lr
+    if setup.lowpass is not None:
+        dT = np.diff(T, axis=0, prepend=t0[None])
+        Lf, yf, yr = np.empty_like(Lr), st.Lf[2, sel], st.Lr[2, sel]
+        for k in range(M):
+            yf = Lf[k] = setup.lowpass(yf, yr, Lr[k], dT[k])
+            yr = Lr[k]
+    D = np.empty_like(Lf)
+    D[0] = Lf[0] - st.Lf[2, sel]
+    np.subtract(Lf[1:], Lf[:-1], out=D[1:])
+    # R = max(|ΔL|, |Δ²L|/max_curvature): a sample is kept while R ≤ β
+    R = np.empty_like(D)
+    np.subtract(D[1:], D[:-1], out=R[1:])
+    R[0] = D[0] - st.slope[sel] * (T[0] - t0)
+    odd = np.flatnonzero(odd)
+    if odd.size:                             # unequal steps: compare slopes
+        dT = np.diff(T[:, odd], axis=0, prepend=t0[None, odd])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            R[1:, odd] = D[1:, odd] - D[:-1, odd] * (dT[1:] / dT[:-1])
+    np.abs(R, out=R)
+    if s.max_curvature != 1.0:
+        R *= 1.0 / s.max_curvature
+    np.fmax(R, np.abs(D), out=R)
+    if setup.lowpass is not None:
+        np.maximum(R, np.abs(np.diff(Lr, axis=0, prepend=st.Lr[2, sel][None])), out=R)
+    n_acc = np.minimum(M - ((R > bound) * _FIRST[-M:]).max(0), n_valid)
+    forced = h0 <= s.min_step * (1 + 1e-9)
+    if forced.any():
+        stats["n_forced"] += int(np.count_nonzero((R > bound)[:, forced] &
+                                                  (np.arange(M)[:, None] < n_valid[forced])))
+        n_acc[forced] = n_valid[forced]
+    # next step: shrink in proportion to a rejected sample; after a kept block predict
+    # the change per step over the next block from the last step and its change
+    rej = n_acc < n_valid
+    Tf, Df, Rf = T.ravel(), D.ravel(), R.ravel()
+
+    def step(k):                              # length of the step to flat index k
+        return Tf[k] - np.where(k < N, t0, Tf[np.maximum(k - N, 0)])
+    kl = np.maximum(n_acc - 1, 0) * N + ar                    # the last kept sample
+    k = np.where(rej, np.minimum(n_acc, M - 1) * N + ar, kl)  # or the rejected one
+    hk, hl, Dk, Rk = step(k), step(kl), Df[k], Rf[k]
+    Ek = Dk - np.where(k < N, st.slope[sel] * hk, Df[np.maximum(k - N, 0)])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pred = np.fmax(np.maximum(np.abs(Dk + Ek), np.abs(Dk + M * Ek)), Rk) / bound
+        f = np.where(rej, np.clip(_TARGET * bound / Rk, 0.1, 0.7),
+                     np.clip(_TARGET / pred, 0.5, 2.0))
+        slope = np.where(Rf[kl] > bound, np.nan, Df[kl] / hl)
+    # a jump (a rejected change above 4β that does not shrink with the step) is
+    # bracketed by bisection, one sample per iteration, down to min_step
+    brk = ~forced & np.where(rej, Rk > 4 * bound, st.brk[sel])
+    h = np.clip(hk * np.where(brk, 0.5, f), s.min_step, s.max_step)
+    st.h[sel], st.brk[sel] = h, brk
+    st.m[sel] = np.where(brk, 1, np.where(rej, np.clip(n_acc + 1, 2, M),
+                                          np.minimum(2 * n_valid, M)))
+    st.grow[sel] = ~rej & (f >= 2.0) & (R.max(0) <= 0.5 * bound) & (h < s.max_step)
+    st.slope[sel] = np.where(n_acc > 0, slope, st.slope[sel])
+    return T, Lr, Lf, D, n_acc
+
+
+def _calm(st: PathState, tol: float, max_step: float, block: int
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Split the pixels into those to sample and those at rest in a non-busy interval
+    (filter settled), which get their next busy start (or 1) as a flat sample.
+
+    Returns ``(to_sample, calm, t_next)`` (index arrays and times)."""
+    K = st.busy.shape[1]
+    k = np.minimum(np.floor(st.t[2] * K + 1e-9).astype(np.int64), K - 1)
+    calm = ~st.busy[st.row, k] & (np.abs(st.Lf[2] - st.Lr[2]) <= tol)
+    ci = np.flatnonzero(calm)
+    later = st.busy[st.row[ci]] & (np.arange(K)[None, :] > k[ci, None])
+    j = np.where(later.any(1), later.argmax(1), K)
+    st.h[ci], st.m[ci], st.grow[ci], st.slope[ci] = max_step, block, False, np.nan
+    st.brk[ci] = False
+    return np.flatnonzero(~calm), ci, np.where(j >= K, 1.0, j / K)
 
 
 def run_core(signal: SignalFn, pix: np.ndarray, setup: SignalSetup, settings: CoreSettings,
@@ -190,52 +292,41 @@ def run_core(signal: SignalFn, pix: np.ndarray, setup: SignalSetup, settings: Co
         busy: optional ``[P, K]`` bool; ``False`` promises the pixel's raw signal is
             constant over the closed interval ``[k/K, (k+1)/K]``. A pixel at rest there
             (filter settled) jumps to its next busy interval without rendering.
-        record_samples: also return every accepted sample (for tests).
+        record_samples: also return every path sample (for tests).
 
     Returns:
-        :class:`CoreResult` with events sorted by time.
+        :class:`CoreResult` with events sorted by time, ties by pixel.
     """
     pix = np.asarray(pix, dtype=np.int64)
-    P = pix.size
-    bound = settings.max_log_step * settings.threshold
-    t_cur = np.zeros(P)
-    dt = np.full(P, settings.max_step)
-    L_raw = signal(pix, t_cur) if P else np.zeros(0)
-    L_f = L_raw.copy()
-    ref = L_raw.copy()
-    th_on, th_off = setup.theta_on[pix].astype(np.float64), setup.theta_off[pix].astype(np.float64)
-    events: list = []
-    rec = [(pix.copy(), t_cur.copy(), L_f.copy())] if record_samples else []
-    n_samples, n_forced, it = P, 0, 0
-    running = np.arange(P)
-    K = 0 if busy is None else busy.shape[1]
-    while running.size:
+    L0 = signal(pix, np.zeros(pix.size)) if pix.size else np.zeros(0)
+    st = PathState(pix, L0, setup, settings, busy)
+    out: list = []
+    rec = [(pix.copy(), np.zeros(pix.size), L0.copy())] if record_samples else None
+    stats = {"n_samples": pix.size, "n_forced": 0, "turn_samples": 0}
+    tol = 1e-6 * settings.max_log_step * settings.threshold
+    it = 0
+    while st.pix.size:
         it += 1
-        act = running
-        if K:
-            act = _skip_calm(running, t_cur, dt, L_raw, L_f, busy, 1e-6 * bound,
-                             settings.max_step)
-        if act.size:
-            n_samples += act.size
-            ev, rec_k, forced_k = _advance(signal, pix, act, t_cur, dt, L_raw, L_f, ref,
-                                           th_on, th_off, setup, settings, record_samples)
-            events.extend(ev)
-            n_forced += forced_k
-            if rec_k is not None:
-                rec.append(rec_k)
-        running = running[t_cur[running] < 1.0]
-    if events:
-        g = np.concatenate([e[0] for e in events])
-        t = np.concatenate([e[1] for e in events])
-        p = np.concatenate([e[2] for e in events])
-        order = np.lexsort((g, t))
-        g, t, p = g[order], t[order], p[order]
-    else:
-        g, t, p = np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int8)
+        sel = slice(None)
+        if busy is not None:
+            sel, calm, t_next = _calm(st, tol, settings.max_step, settings.block)
+            if calm.size:
+                commit(signal, st, calm, t_next[None], st.Lr[2, calm][None],
+                       st.Lf[2, calm][None], np.zeros((1, calm.size)),
+                       np.ones(calm.size, np.int64), setup, settings, stats, out, rec)
+        if isinstance(sel, slice) or sel.size:
+            T, Lr, Lf, D, n_acc = _sample(signal, st, sel, setup, settings, stats)
+            commit(signal, st, sel, T, Lr, Lf, D, n_acc, setup, settings, stats, out, rec)
+        running = st.t[2] < 1.0
+        if not running.all():
+            st.keep(running)
+    g, t, p = merge_by_time(out) if out else (np.zeros(0, np.int64), np.zeros(0),
+                                              np.zeros(0, np.int8))
     samples = None
-    if record_samples:
+    if rec is not None:
         samples = tuple(np.concatenate([r[i] for r in rec]) for i in range(3))
-    if n_forced:
-        log.debug("event core: %d steps at min_step exceeded the log-step bound "
-                  "(discontinuities)", n_forced)
-    return CoreResult(g, t, p, n_samples, n_forced, samples, it)
+    if stats["n_forced"]:
+        log.debug("event core: %d samples at min_step exceeded the bounds "
+                  "(discontinuities)", stats["n_forced"])
+    return CoreResult(g, t, p, stats["n_samples"], stats["n_forced"], samples, it,
+                      {"turn_samples": stats["turn_samples"]})

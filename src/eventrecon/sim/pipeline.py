@@ -38,8 +38,10 @@ log = logging.getLogger(__name__)
 
 #: Bumped whenever the simulator's output for a given config changes (part of the hash).
 #: 2: both splits carry subject masks (``mask/<frame>/<view>.png``); datasets cached by
-#: version 1 have none and are never reused.
-SIM_VERSION: int = 2
+#: version 1 have none and are never reused. 3: the event core finds the crossings where
+#: the signal turns (curvature bound, refined extrema) and frames may be area-averaged
+#: (``frame_supersample``).
+SIM_VERSION: int = 3
 
 
 def _meta(spec: SceneSpec, stats: dict) -> dict:
@@ -91,13 +93,15 @@ def _simulate(spec: SceneSpec, root: str | Path) -> Dataset:
     streams, core = simulate_events(spec, train_r)
     t_ev = time.perf_counter() - t0
     rgb_t = frame_times(spec.duration_s, spec.rgb_fps, spec.where, "rgb_fps")
-    frames = render_frames(spec, train_r, rgb_t, effects=True)
+    frames_r = (train_r if spec.frame_supersample == spec.supersample
+                else PixelRenderer(spec.scene, train_cams, spec.frame_supersample))
+    frames = render_frames(spec, frames_r, rgb_t, effects=True)
     train = SplitData(Path(root) / "train", train_cams, streams, rgb_t, frames,
-                      background=render_backgrounds(spec, train_r, effects=True),
-                      masks=render_masks(train_r, rgb_t))
+                      background=render_backgrounds(spec, frames_r, effects=True),
+                      masks=render_masks(frames_r, rgb_t))
     splits = {"train": train}
     if len(held_cams):
-        held_r = PixelRenderer(spec.scene, held_cams, spec.supersample)
+        held_r = PixelRenderer(spec.scene, held_cams, spec.frame_supersample)
         gt_t = frame_times(spec.duration_s, spec.eval_fps, spec.where, "eval_fps")
         splits["validation"] = SplitData(
             Path(root) / "validation", held_cams, None, gt_t,
