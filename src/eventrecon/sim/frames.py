@@ -77,7 +77,7 @@ def render_frames(spec: SceneSpec, prend: PixelRenderer, times: np.ndarray,
 def render_backgrounds(spec: SceneSpec, prend: PixelRenderer, effects: bool = True
                        ) -> np.ndarray:
     """``[V, H, W, 3]`` uint8 empty-scene frame per view (``[V, H, W]`` for Bayer raw)."""
-    empty = PixelRenderer(empty_scene(spec.scene), prend.cams, spec.supersample)
+    empty = PixelRenderer(empty_scene(spec.scene), prend.cams, spec.frame_supersample)
     out = []
     for v in range(len(prend.cams)):
         img = empty.image(v, 0.0).numpy()

@@ -8,7 +8,11 @@ Fields (defaults in brackets; time units ``u`` span ``[0, 1000]``):
 - ``tonemap_eps`` [1e-2], ``threshold`` [0.5], ``decay`` [1.0] (recorded for training),
   ``cylinder`` [{radius 0.5, y_min −0.75, y_max 0.25}], ``segments`` [[[0, 1000]]];
 - sampling: ``max_log_step`` [0.25] (fraction of θ), ``max_step`` [2.0 u],
-  ``min_step`` [1e-3 u], ``supersample`` [1] rays per pixel side;
+  ``min_step`` [1e-3 u], ``supersample`` [1] rays per pixel side of the event signal;
+  ``frame_supersample`` [= supersample] rays per pixel side of the RGB frames,
+  backgrounds, masks and ground-truth renders (an area-averaged pixel, as a camera's:
+  a pixel-centre ground truth aliases at texture and silhouette edges, which no model
+  trained on jittered rays can reproduce);
 - ``rig``: ``n_train`` [6], ``n_heldout`` [1], ``radius`` [2.5], ``elevation_deg`` [15],
   ``fov_deg`` [32], ``target`` [[0, −0.25, 0]], ``dist`` [zeros], or ``camdict: PATH``
   (the last ``n_heldout`` views of the file are held out);
@@ -59,6 +63,7 @@ class SceneSpec:
     max_step: float
     min_step: float
     supersample: int
+    frame_supersample: int
     rig: dict
     scene: Scene
     event_effects: list[Effect] = field(default_factory=list)
@@ -115,6 +120,9 @@ def parse_spec(cfg: object, where: str | None = None) -> SceneSpec:
         max_step=get(raw, "max_step", float, w, default=2.0, check=_pos) / TIME_SPAN,
         min_step=get(raw, "min_step", float, w, default=1e-3, check=_pos) / TIME_SPAN,
         supersample=get(raw, "supersample", int, w, default=1, check=_pos),
+        frame_supersample=get(raw, "frame_supersample", int, w,
+                              default=get(raw, "supersample", int, w, default=1, check=_pos),
+                              check=_pos),
         rig=dict(rig), scene=parse_scene(raw, w),
         event_effects=EVENT_EFFECTS.build(raw.get("events"), w),
         frame_effects=FRAME_EFFECTS.build(raw.get("frames"), w),
