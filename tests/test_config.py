@@ -69,7 +69,7 @@ def test_compressed_schedules_are_a_named_option_and_the_ramp_is_never_compresse
 
 def test_sizing_applies_only_to_its_trainer_and_model():
     ngp = _compose("model=ngp")
-    assert ngp.model.optim.lr == 1e-3 and "depth" not in ngp.model
+    assert ngp.model.optim.lr == 1e-2 and "depth" not in ngp.model  # conf/sizing/cpu_ngp.yaml
     assert ngp.model.log2_table_size == 17  # conf/sizing/cpu_ngp.yaml
     assert _compose("model=ngp", "trainer=paper").model.log2_table_size == 19
     override = _compose("model.depth=8", "model.width=256")  # the command line still wins
