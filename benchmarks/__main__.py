@@ -4,6 +4,8 @@
     python -m benchmarks step --only ngp      # the project's training step, one backbone
     python -m benchmarks sim --quick          # simulator, default size only
     python -m benchmarks fields --help        # a benchmark's own options
+    python -m benchmarks zoo --budgets 60 180 600 --out zoo.md   # quality per second
+    python -m benchmarks compile              # torch.compile / bf16 vs eager (NeRF MLP)
 
 ``make bench ARGS="step --profile"`` passes ARGS here. NAME is the part after ``bench_``
 of a module in this folder.

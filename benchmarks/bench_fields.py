@@ -1,16 +1,25 @@
-"""Throughput of one full training step (forward + backward + Adam step) per backbone.
+"""Throughput of one bare field step (forward + backward + AdamW step) per backbone.
 
-    python benchmarks/bench_fields.py                      # 2 threads, 2^16 samples/step
-    python benchmarks/bench_fields.py --threads 1 --compile --out bench.json
+    python -m benchmarks fields                            # trainer=cpu sizes, 2 threads
+    python -m benchmarks fields --sizing paper --compile --threads 1 --out bench.json
 
-For each backbone the same run also times a *naive* version of it (the slow references:
-NGP with Python loops over levels and corners, TensoRF-CP / HexPlane sampling their
-factors by explicit corner gathers instead of ``grid_sample``) and prints the speed-up.
-Sizes: NGP at paper scale (2^19 table), TensoRF-CP and HexPlane at their CPU presets'
-final resolution (conf/model/*.yaml), the NeRF MLP at the paper's 8×256 (its naive
-version is in ``bench_nerf``). The naive versions run on the same number of samples
-(``--naive-n`` to change it). ``ngp_compiled`` also reports its ratio to eager NGP.
-Medians over ``--reps`` timed steps.
+Each backbone is built from its config exactly as a run builds it (``conf/model/*.yaml``
+with ``--sizing cpu``: the ``trainer=cpu`` sizes of ``conf/sizing/cpu_<model>.yaml``;
+``--sizing paper``: the configs' own, the authors' sizes), TensoRF-CP at its final
+resolution (``model.n_stages=1``). Samples are uniform in the default clipping
+cylinder's bounding box (the field's scene box, as in a run) and times uniform in
+``[0, 1]``; the loss is ``mean σ + mean rgb`` plus the field's regulariser.
+
+For the grid backbones the same run also times a *naive* version of the same field
+(the slow references: NGP with Python loops over levels and corners,
+:func:`baselines.ngp.hash_encode_reference`; TensoRF-CP / HexPlane sampling each factor
+by explicit corner gathers, :func:`baselines.grids.sample_grid_reference`, with the
+factor's own ``align_corners`` and padding) and logs the speed-up and the largest
+difference of the two forward outputs (a check that the reference is the same
+function). The naive versions run on ``--naive-n`` samples (default ``--n``).
+``ngp_compiled`` (``--compile``, ``model.compile=true``) also reports its ratio to eager
+NGP. Medians over ``--reps`` timed steps after 2 warm-up steps; the first step is
+reported separately (it includes compilation).
 """
 
 from __future__ import annotations
@@ -21,55 +30,84 @@ import logging
 import os
 import statistics
 import time
-from collections.abc import Callable
+from pathlib import Path
 
 import torch
-from torch import nn
+from hydra import compose, initialize_config_dir
+from torch import Tensor
 
-from baselines import HexPlaneField, NGPField, TensoRFCPField, hash_encode_reference
+from baselines import NGPField, hash_encode_reference
+from baselines.factorised import FactorisedField
 from baselines.grids import sample_grid_reference
+from eventrecon import build
+from eventrecon.fields.base import Field
+from eventrecon.render.clipping import Cylinder
 
 log = logging.getLogger("benchmarks.fields")
+CONF = str(Path(__file__).resolve().parents[1] / "conf")
 
-def _make_naive(field: nn.Module) -> nn.Module:
+#: name -> config overrides of the backbone.
+BACKBONES: dict[str, list[str]] = {
+    "ngp": ["model=ngp"],
+    "ngp_compiled": ["model=ngp", "model.compile=true"],
+    "tensorf_cp": ["model=tensorf_cp", "model.n_stages=1"],
+    "hexplane": ["model=hexplane"],
+    "nerf": ["model=nerf", "model.anneal_steps=0"],
+}
+NAIVE = ("ngp", "tensorf_cp", "hexplane")
+
+
+def build_backbone(overrides: list[str], sizing: str) -> tuple[Field, float]:
+    """The field of ``overrides`` (``sizing``: ``cpu`` or ``paper``) with its config's lr,
+    its scene box set to the default clipping cylinder's."""
+    trainer = "trainer=paper" if sizing == "paper" else "trainer=cpu"
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[trainer, *overrides])
+    field = build.build_field(cfg.model)
+    field.set_scene_box(*Cylinder().box())
+    return field, float((cfg.model.get("optim") or {}).get("lr", 1e-3))
+
+
+def make_naive(field: Field) -> Field:
     """Swap the vectorised encoder of ``field`` for its slow reference (in place)."""
     if isinstance(field, NGPField):
         enc = field.encoding
         enc.forward = lambda u: hash_encode_reference(enc, u)  # type: ignore[method-assign]
-    else:
+    elif isinstance(field, FactorisedField):
         grids = field.grids
         grids.forward = lambda c: [  # type: ignore[method-assign]
-            sample_grid_reference(f, c[:, list(ax)]) for f, ax in zip(grids.factors, grids.axes)]
+            sample_grid_reference(f, c[:, list(ax)], ac, grids.padding)
+            for f, ax, ac in zip(grids.factors, grids.axes, grids.align_corners)]
+    else:
+        raise TypeError(f"no naive version of {type(field).__name__}")
     return field
 
 
-def _backbones(compile_ngp: bool) -> dict[str, tuple[Callable[[], nn.Module], float]]:
-    out: dict[str, tuple[Callable[[], nn.Module], float]] = {
-        "ngp": (lambda: NGPField(), 1e-3),
-        "tensorf_cp": (lambda: TensoRFCPField(n_growth=0), 1e-2),
-        "hexplane": (lambda: HexPlaneField(n_growth=0), 1e-2),
-    }
-    if compile_ngp:
-        out["ngp_compiled"] = (lambda: NGPField(compile=True), 1e-3)
-    from eventrecon.fields.nerf import NeRFField
-
-    out["nerf"] = (lambda: NeRFField(anneal_steps=0), 1e-4)  # the paper's 8x256
-    return out
+def random_samples(n: int, seed: int = 0) -> tuple[Tensor, Tensor]:
+    """``n`` points uniform in the default cylinder's box and times uniform in [0, 1]."""
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = (torch.tensor(v, dtype=torch.float32) for v in Cylinder().box())
+    return lo + torch.rand(n, 3, generator=g) * (hi - lo), torch.rand(n, 1, generator=g)
 
 
-def time_steps(field: nn.Module, lr: float, n: int, reps: int, warmup: int = 2
+@torch.no_grad()
+def max_difference(a: Field, b: Field, n: int = 2048) -> float:
+    """Largest absolute difference of the ``(σ, rgb)`` outputs of two fields."""
+    xyz, t = random_samples(n, seed=1)
+    (sa, ra), (sb, rb) = a(xyz, t), b(xyz, t)
+    return max(float((sa - sb).abs().max()), float((ra - rb).abs().max()))
+
+
+def time_steps(field: Field, lr: float, n: int, reps: int, warmup: int = 2
                ) -> tuple[float, float]:
     """Median seconds of one training step on ``n`` random samples; also the first step's."""
-    opt = torch.optim.Adam(field.param_groups(lr) if hasattr(field, "param_groups")
-                           else field.parameters())
-    g = torch.Generator().manual_seed(0)
-    xyz = torch.rand(n, 3, generator=g) * 2 - 1
-    t = torch.rand(n, 1, generator=g)
+    opt = torch.optim.AdamW(field.param_groups(lr), lr=lr)
+    xyz, t = random_samples(n)
 
     def step() -> None:
         sigma, rgb = field(xyz, t)
         loss = sigma.mean() + rgb.mean()
-        reg = field.regularization() if hasattr(field, "regularization") else None
+        reg = field.regularization()
         if reg is not None:
             loss = loss + reg
         opt.zero_grad(set_to_none=True)
@@ -90,40 +128,49 @@ def time_steps(field: nn.Module, lr: float, n: int, reps: int, warmup: int = 2
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m benchmarks fields",
+                                 description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=65536, help="samples per training step")
     ap.add_argument("--naive-n", type=int, default=None,
                     help="samples for the naive versions (default: --n)")
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--sizing", choices=("cpu", "paper"), default="cpu",
+                    help="cpu: the trainer=cpu sizes; paper: the configs' own (authors')")
     ap.add_argument("--compile", action="store_true", help="also time NGP with torch.compile")
-    ap.add_argument("--only", nargs="*", help="subset of backbones")
+    ap.add_argument("--only", nargs="*", choices=list(BACKBONES), help="subset of backbones")
     ap.add_argument("--out", help="write the results as JSON")
     args = ap.parse_args(argv if argv is not None else [])
     torch.set_num_threads(args.threads)
-    rows = []
-    for name, (make, lr) in _backbones(args.compile).items():
-        if args.only and name not in args.only:
+    rows: list[dict] = []
+    for name, over in BACKBONES.items():
+        if (args.only and name not in args.only) or (name == "ngp_compiled" and not args.compile
+                                                     and not args.only):
             continue
-        sec, first = time_steps(make(), lr, args.n, args.reps)
+        field, lr = build_backbone(over, args.sizing)
+        sec, first = time_steps(field, lr, args.n, args.reps)
         row = {"backbone": name, "samples_per_s": args.n / sec, "step_s": sec,
-               "first_step_s": first}
-        if name in ("ngp", "tensorf_cp", "hexplane"):
+               "first_step_s": first, "params": sum(p.numel() for p in field.parameters())}
+        if name in NAIVE:
             naive_n = args.naive_n or args.n
-            nsec, _ = time_steps(_make_naive(make()), lr, naive_n, max(1, args.reps // 2), 1)
+            naive = make_naive(build_backbone(over, args.sizing)[0])
+            row["naive_max_diff"] = max_difference(build_backbone(over, args.sizing)[0], naive)
+            nsec, _ = time_steps(naive, lr, naive_n, max(1, args.reps // 2), 1)
             row["naive_samples_per_s"] = naive_n / nsec
             row["speedup"] = row["samples_per_s"] / row["naive_samples_per_s"]
         eager = next((r for r in rows if r["backbone"] == "ngp"), None)
         if name == "ngp_compiled" and eager is not None:
             row["vs_eager"] = row["samples_per_s"] / eager["samples_per_s"]
         rows.append(row)
-        log.info(f"{name:14s} {row['samples_per_s'] / 1e3:9.1f} k samples/s  "
-                 f"(step {sec * 1e3:7.1f} ms, first {first:6.2f} s)"
+        log.info(f"{name:13s} {row['samples_per_s'] / 1e3:9.1f} k samples/s  "
+                 f"(step {sec * 1e3:7.1f} ms, first {first:6.2f} s, "
+                 f"{row['params'] / 1e6:.2f} M params)"
                  + (f"  naive {row['naive_samples_per_s'] / 1e3:7.1f} k/s  x{row['speedup']:.1f}"
+                    f"  (max |fast - naive| {row['naive_max_diff']:.1e})"
                     if "speedup" in row else "")
                  + (f"  x{row['vs_eager']:.2f} vs eager" if "vs_eager" in row else ""))
-    meta = {"threads": args.threads, "n": args.n, "torch": torch.__version__,
-            "loadavg": os.getloadavg()}
+    meta = {"threads": args.threads, "n": args.n, "sizing": args.sizing,
+            "torch": torch.__version__, "loadavg": os.getloadavg()}
     log.info(f"# {meta}")
     if args.out:
         with open(args.out, "w") as fh:

@@ -14,6 +14,12 @@ optimiser step), as ``bench_fields`` measures it; ``real/bare`` is the share of 
 field's own speed the whole step keeps (1 = the rest of the step costs nothing).
 Scene: the default ``spheres`` at the ``trainer=cpu`` preset (simulated into ``data/`` if
 missing). Medians over ``--reps`` steps after ``--warmup``.
+
+``--skip`` sets ``render.skip`` (default ``none``: every sample of a ray that hits the
+cylinder reaches the field, as the figures in ``docs/results/`` were taken). With
+``--skip grid`` the occupancy grid is updated once from the fresh field before timing
+(a run updates it every ``render.occupancy.every`` steps as the field learns); the
+effect of skipping on a *trained* field is measured by ``python -m benchmarks zoo``.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ import argparse
 import logging
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -46,7 +53,7 @@ BACKBONES: dict[str, list[str]] = {
 }
 
 
-def _median_time(fn, reps: int, warmup: int) -> float:
+def _median_time(fn: Callable[[], None], reps: int, warmup: int) -> float:
     for _ in range(warmup):
         fn()
     times = []
@@ -58,14 +65,22 @@ def _median_time(fn, reps: int, warmup: int) -> float:
 
 
 def measure(overrides: list[str], reps: int, warmup: int, data_dir: str,
-            profile: bool = False) -> dict:
+            profile: bool = False, skip: str = "none") -> dict:
     """Median seconds of the real and the bare step of one backbone configuration."""
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[*overrides, f"data_dir={data_dir}"])
+        cfg = compose(config_name="config", overrides=[*overrides, f"data_dir={data_dir}",
+                                                        f"render.skip={skip}"])
     ds = build.load_dataset(cfg)
     props = build.scene_properties(cfg, ds)
     module = build.build_module(cfg, props, ds.splits["train"], Segment(0.0, 1000.0))
     opt = module.configure_optimizers()
+    grid = module.renderer.occupancy
+    if grid is not None:  # as OccupancyUpdate does at step 0
+        with torch.no_grad():
+            module.field.eval()
+            grid.update(lambda x, t: module.renderer.masked_density(module.field, x, t),
+                        torch.Generator().manual_seed(cfg.seed * 1_000_003))
+            module.field.train()
     n_rays = int(cfg.trainer.n_rays)
     queried: list[int] = []
     hook = module.field.register_forward_hook(lambda m, inp, out: queried.append(len(inp[0])))
@@ -123,18 +138,21 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--data-dir", default="data")
+    ap.add_argument("--skip", choices=("none", "grid"), default="none",
+                    help="render.skip (grid: updated once from the fresh field)")
     ap.add_argument("--profile", action="store_true", help="print the top operators of 3 steps")
     args = ap.parse_args(argv if argv is not None else [])
     torch.set_num_threads(args.threads)
     for name, over in BACKBONES.items():
         if args.only and name not in args.only:
             continue
-        r = measure(over, args.reps, args.warmup, args.data_dir, args.profile)
+        r = measure(over, args.reps, args.warmup, args.data_dir, args.profile, args.skip)
         log.info("%-13s real %8.1f k samples/s (%6.1f ms/step)  bare %8.1f k samples/s "
-                 "(%6.1f ms)  real/bare %.2f  [%d samples/step, %d threads]", name,
+                 "(%6.1f ms)  real/bare %.2f  [%d samples/step, %d threads, skip %s]", name,
                  r["real_samples_per_s"] / 1e3, r["real_s"] * 1e3,
                  r["bare_samples_per_s"] / 1e3, r["bare_s"] * 1e3,
-                 r["real_samples_per_s"] / r["bare_samples_per_s"], r["samples"], args.threads)
+                 r["real_samples_per_s"] / r["bare_samples_per_s"], r["samples"], args.threads,
+                 args.skip)
         if "profile" in r:
             log.info("%s", r["profile"])
 

@@ -1,0 +1,233 @@
+"""Quality per second of the backbone zoo, with and without empty-space skipping.
+
+    python -m benchmarks zoo                                  # quick check: 10 and 30 s
+    python -m benchmarks zoo --budgets 60 180 600 --out docs/results/zoo.md   # issue 12
+    python -m benchmarks zoo --only ngp --skip grid --budgets 5 10 --images 1 --threads 1
+    python -m benchmarks zoo --device cuda --budgets 60 180 600          # paper settings
+
+For every backbone (``nerf``, ``ngp``, ``tensorf_cp``, ``hexplane``) and every
+``render.skip`` (``none``, ``grid``), in one process:
+
+1. **Training** (``eventrecon.runner.run``) on ``scene=spheres`` at ``scale=cpu`` (CPU: 256
+   rays, 32 + 32 samples, the CPU sizes, warm-up schedules compressed to the preset's
+   1000 steps and kept there) or ``trainer=paper`` (``--device cuda``: 1024 rays, 64 + 128
+   samples, the 8×256 MLP and the configs' own sizes, the paper's schedules), until
+   ``max(--budgets)`` seconds of *training* (the held-out monitor's clock, which
+   excludes evaluation; the occupancy-grid updates are added to it, see
+   :class:`benchmarks.zoo_run.BudgetStop`). **PSNR@b** is the held-out PSNR of the last
+   ``curve.csv`` row with ``wall_s <= b`` (all 96×72 pixels of the held-out view at three
+   times; a row is written a step or two before each budget; "—": none); ``steps`` is
+   the steps trained in the whole budget.
+2. **Render**: ``renderer.render_image`` of the trained field on a 346×260 camera of the
+   scene's ring rig (``eventrecon.render.cameras.ring_rig``), median seconds over
+   ``--images`` images (views and times differ), and the field samples per pixel.
+3. **Step**: from the trained state, ``--warmup`` + ``--reps`` real training steps
+   alternating with the bare field step on the very samples each real step sent
+   (:func:`benchmarks.zoo_run.time_steps`): medians of the real step, of the field's
+   forward + backward, of its AdamW step, and the rest (sampling, compositing, losses);
+   the grid update's seconds divided by ``render.occupancy.every`` (its per-step share,
+   not in the real step); and the **samples per ray** reaching the field (field inputs
+   of a real step / (3 · n_rays): every ray is rendered at t0, t1 and t_ref).
+
+The result is a Markdown table (logged; ``--out FILE`` writes it, ``--json FILE`` the raw
+rows) and a second table of ratios ``none / grid`` measured in the same run. Runs go to a
+temporary folder (``--work-dir``; removed unless ``--keep``). The default budgets are a
+quick check (a few minutes per backbone); the issue's figures are ``--budgets 60 180 600``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import shutil
+import tempfile
+import warnings
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from benchmarks.zoo_run import STATS_FILE, compose_run, time_render, time_steps
+from eventrecon import build, runner
+from eventrecon.data.selection import training_split
+from eventrecon.records import read_curve_rows
+from eventrecon.segments import run_segments, run_window
+
+log = logging.getLogger("benchmarks.zoo")
+
+#: name -> config overrides of the backbone (sizes come from the preset).
+BACKBONES: dict[str, list[str]] = {
+    "nerf": ["model=nerf"],
+    "ngp": ["model=ngp"],
+    "tensorf_cp": ["model=tensorf_cp"],
+    "hexplane": ["model=hexplane"],
+}
+SKIPS: tuple[str, ...] = ("none", "grid")
+
+
+def psnr_at(curve: Path, budgets: list[float]) -> dict[float, tuple[float | None, int | None]]:
+    """``(psnr, step)`` of the last row of ``curve`` with ``wall_s <= b`` per budget ``b``
+    (of two rows at the same time, the cheap one: every budget's PSNR is then pooled over
+    the same pixels the same way)."""
+    rows = read_curve_rows(curve) if curve.exists() else []
+    out: dict[float, tuple[float | None, int | None]] = {}
+    for b in budgets:
+        inside = [r for r in rows if float(r["wall_s"]) <= b and r["psnr"]]
+        last = max(inside, key=lambda r: (float(r["wall_s"]), int(r["step"]),
+                                          r["kind"] == "cheap"), default=None)
+        out[b] = (float(last["psnr"]), int(last["step"])) if last else (None, None)
+    return out
+
+
+def bench_one(name: str, skip: str, args: argparse.Namespace, work: Path) -> dict[str, Any]:
+    """Train one backbone with one skip mode for the budgets, then time its trained state."""
+    preset = "paper" if args.device == "cuda" else "cpu"
+    cfg = compose_run([*BACKBONES[name], f"render.skip={skip}", *args.override], args.budgets,
+                      preset, args.data_dir, args.curve_every,
+                      args.safety * max(args.budgets) + 300)
+    out_dir = work / f"{name}-{skip}"
+    metrics = runner.run(cfg, out_dir)
+    seg_dir = out_dir / "seg0"
+    stats = json.loads((seg_dir / STATS_FILE).read_text())
+    row: dict[str, Any] = {"backbone": name, "skip": skip, "status": metrics.get("status"),
+                           "steps": int(metrics.get("steps", 0)),
+                           "train_s": float(stats["wall_s"] or 0.0),
+                           "updates_s": float(stats["update_s"])}
+    for b, (p, s) in psnr_at(out_dir / "curve.csv", args.budgets).items():
+        row[f"psnr@{b:g}"], row[f"step@{b:g}"] = p, s
+    # the trained state, back from the run's last checkpoint
+    ds = build.load_dataset(cfg)
+    props = build.scene_properties(cfg, ds)
+    window = run_window(cfg)
+    train = training_split(ds, cfg.data.views, cfg.data.fps, props.duration_s,
+                           window or (0.0, 1000.0))
+    seg = run_segments(cfg, props.segments)[0]
+    device = torch.device(args.device)
+    module = build.build_module(cfg, props, train, seg, device=device)
+    field, renderer = build.load_segment(cfg, props, seg_dir)
+    module.field, module.renderer = field.train(), renderer
+    module.to(device)  # also sets module.device, which the timings synchronise on
+    step0 = build.inspect_checkpoint(seg_dir / "checkpoints" / "last.ckpt", field).step
+    row.update(time_render(module, cfg, args.images))
+    row.update(time_steps(module, max(step0, 0), args.warmup, args.reps, int(cfg.seed)))
+    return row
+
+
+def _f(v: float | None, fmt: str) -> str:
+    return "—" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
+
+
+def markdown(rows: list[dict[str, Any]], budgets: list[float], meta: dict[str, Any]) -> str:
+    """The results table, the ``none / grid`` ratio table and a line of run settings."""
+    head = (["backbone", "skip", "steps"] + [f"PSNR@{b:g}s" for b in budgets]
+            + ["samples/ray", "real step ms", "field fwd+bwd ms", "AdamW ms", "rest ms",
+               "grid upd. ms/step", "346×260 render s", "render samples/px"])
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        name = r["backbone"] + ("" if r.get("status") == "ok" else f" ({r.get('status')})")
+        cells = [name, r["skip"], str(r["steps"])]
+        cells += [_f(r.get(f"psnr@{b:g}"), ".2f") for b in budgets]
+        cells += [_f(r["samples_per_ray"], ".1f")]
+        cells += [_f(r[k] * 1e3, ".1f") for k in ("real_s", "field_s", "optim_s", "rest_s",
+                                                   "update_s_per_step")]
+        cells += [_f(r["render_s"], ".2f"), _f(r["render_samples_per_px"], ".1f")]
+        lines.append("| " + " | ".join(cells) + " |")
+    ratio_head = ["backbone", "samples/ray", "real step", "step + grid upd.", "render",
+                  "steps in budget"]
+    lines += ["", "Ratios none / grid (same run; > 1: skipping is faster or uses fewer):", "",
+              "| " + " | ".join(ratio_head) + " |", "|" + "---|" * len(ratio_head)]
+    for name in dict.fromkeys(r["backbone"] for r in rows):
+        pair = {r["skip"]: r for r in rows if r["backbone"] == name}
+        if set(pair) != set(SKIPS):
+            continue
+        n, g = pair["none"], pair["grid"]
+        full = (n["real_s"] + n["update_s_per_step"]) / (g["real_s"] + g["update_s_per_step"])
+        cells = [name, _f(n["samples_per_ray"] / g["samples_per_ray"], ".2f"),
+                 _f(n["real_s"] / g["real_s"], ".2f"), _f(full, ".2f"),
+                 _f(n["render_s"] / g["render_s"], ".2f"),
+                 _f(g["steps"] / max(n["steps"], 1), ".2f")]
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "Settings: " + ", ".join(f"{k}={v}" for k, v in meta.items())]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks zoo",
+                                 description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog="\n".join(__doc__.splitlines()[1:]))
+    ap.add_argument("--budgets", type=float, nargs="+", default=[10.0, 30.0],
+                    help="training seconds at which PSNR is read (default: a quick 10 30; "
+                         "issue 12: 60 180 600)")
+    ap.add_argument("--only", nargs="+", choices=list(BACKBONES), help="subset of backbones")
+    ap.add_argument("--skip", nargs="+", choices=SKIPS, default=list(SKIPS),
+                    help="render.skip values")
+    ap.add_argument("--images", type=int, default=3, help="346x260 images timed (median)")
+    ap.add_argument("--warmup", type=int, default=3, help="steps before the timed ones")
+    ap.add_argument("--reps", type=int, default=7, help="timed real and bare steps")
+    ap.add_argument("--curve-every", type=int, default=50,
+                    help="steps between held-out curve points (besides one per budget)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                    help="cuda: the paper's settings (trainer=paper) on the GPU")
+    ap.add_argument("--data-dir", default="data")
+    ap.add_argument("--override", nargs="*", default=[],
+                    help="extra Hydra overrides for every run (e.g. render.occupancy.every=8)")
+    ap.add_argument("--safety", type=float, default=4.0,
+                    help="Lightning max_time = SAFETY * max budget + 300 s (a backstop)")
+    ap.add_argument("--work-dir", default=None, help="parent of the runs' folder (default: tmp)")
+    ap.add_argument("--keep", action="store_true", help="keep the runs' folders")
+    ap.add_argument("--out", help="write the Markdown table here")
+    ap.add_argument("--json", help="write the raw rows here")
+    args = ap.parse_args(argv if argv is not None else [])
+    if args.device == "cuda" and not torch.cuda.is_available():
+        log.info("zoo: --device cuda skipped: CUDA is not available on this machine")
+        return
+    torch.set_num_threads(args.threads)
+    logging.getLogger("lightning").setLevel(logging.WARNING)
+    logging.getLogger("lightning.pytorch").setLevel(logging.WARNING)
+    logging.getLogger("baselines").setLevel(logging.WARNING)  # grid growth lines
+    warnings.filterwarnings("ignore", module=r"lightning(\.|$)")
+    work = Path(tempfile.mkdtemp(prefix="zoo-", dir=args.work_dir))
+    rows = []
+    try:
+        for name in args.only or list(BACKBONES):
+            for skip in args.skip:
+                row = bench_one(name, skip, args, work)
+                rows.append(row)
+                log.info("%-10s skip=%-4s %5d steps  %s  %.1f samples/ray  step %.0f ms "
+                         "(field %.0f + AdamW %.0f + rest %.0f, grid upd. %.0f/step)  "
+                         "render %.2f s", name, skip, row["steps"],
+                         "  ".join(f"PSNR@{b:g}={_f(row[f'psnr@{b:g}'], '.2f')}"
+                                   for b in args.budgets),
+                         row["samples_per_ray"], row["real_s"] * 1e3, row["field_s"] * 1e3,
+                         row["optim_s"] * 1e3, row["rest_s"] * 1e3,
+                         row["update_s_per_step"] * 1e3, row["render_s"])
+    finally:
+        if args.keep:
+            log.info("runs kept in %s", work)
+        else:
+            shutil.rmtree(work, ignore_errors=True)
+    meta = {"device": args.device, "preset": "trainer=paper" if args.device == "cuda"
+            else "scale=cpu", "threads": args.threads, "budgets_s": args.budgets,
+            "images": args.images, "reps": args.reps, "torch": torch.__version__,
+            "loadavg": tuple(round(x, 2) for x in os.getloadavg())}
+    if args.override:
+        meta["overrides"] = " ".join(args.override)
+    table = markdown(rows, args.budgets, meta)
+    log.info("\n%s", table)
+    if args.out:
+        Path(args.out).write_text(table + "\n")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows}, indent=2))
+
+
+if __name__ == "__main__":
+    import sys
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    logging.getLogger("eventrecon").setLevel(logging.WARNING)
+    main(sys.argv[1:])
