@@ -128,15 +128,16 @@ def train_segment(cfg: DictConfig, props: SceneProperties, train: SplitData,
     L.seed_everything(cfg.seed + 1000 * k, workers=True, verbose=False)
     module = build_module(cfg, props, None, seg, k)
     data = SegmentDataModule(train, seg, props.decay, props.bayer, cfg.data.neg_ratio)
-    callbacks = list(module.field.callbacks())
-    if module.renderer.occupancy is not None:
-        callbacks.append(OccupancyUpdate(cfg.seed + 1000 * k))
+    callbacks: list = []
     monitor = None
-    if heldout is not None:
+    if heldout is not None:  # first: its clock then counts the schedules' work as training
         monitor = HeldOutMonitor(heldout, seg, seg_dir, cfg.trainer.curve_every,
                                  cfg.trainer.eval_every, cfg.trainer.image_every,
                                  cfg.trainer.curve_pixels, cfg.render.chunk, cfg.seed)
         callbacks.append(monitor)
+    callbacks += list(module.field.callbacks())
+    if module.renderer.occupancy is not None:
+        callbacks.append(OccupancyUpdate(cfg.seed + 1000 * k))
     callbacks.append(Progress(k, n_segments, cfg.trainer.get("progress", "auto"),
                               cfg.trainer.get("progress_every_s", 30.0), monitor))
     trainer = _trainer(cfg, seg_dir, callbacks, k)

@@ -90,7 +90,45 @@ def intersect_plane(o: Tensor, d: Tensor, height: float) -> Tensor:
     return torch.where(s > _EPS, s, torch.full_like(s, float("inf")))
 
 
-class BoxSet:
+class _BodySet:
+    """``K`` primitives, each fixed in one of ``B`` bodies: what :class:`BoxSet` and
+    :class:`SphereSet` share — orientation ``R_k`` and centre ``c_k`` in body ``b_k``, one
+    texture each, and the chunking of the ``[n, K]`` ray–primitive pairs."""
+
+    #: Ray–primitive pairs per pass (bounds the ``[n, K, 3]`` temporaries).
+    PAIRS = 1 << 19
+
+    def __init__(self, rotations: np.ndarray, centres: np.ndarray, textures: list[Texture],
+                 ids: list[int], bodies: list[int]):
+        self.R = torch.as_tensor(np.asarray(rotations, np.float64))
+        self.c = torch.as_tensor(np.asarray(centres, np.float64))
+        self.table = TextureTable(textures)
+        self.ids = torch.as_tensor(ids, dtype=torch.long)
+        self.body = torch.as_tensor(bodies, dtype=torch.long)
+
+    def __len__(self) -> int:
+        return int(self.c.shape[0])
+
+    def intersect(self, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Nearest primitive along rays given in every body's frame, ``o, d [N, B, 3]``.
+
+        Returns:
+            ``(s [N], k [N], n [N, 3], albedo [N, 3])``: distance (``inf`` = none), the
+            primitive's position in the set (−1 = none), its outward normal in its body's
+            frame and its texture's albedo at the hit.
+        """
+        step = max(1, self.PAIRS // len(self))
+        if o.shape[0] > step:
+            parts = [self._nearest(o[i:i + step], d[i:i + step])
+                     for i in range(0, o.shape[0], step)]
+            return tuple(torch.cat([p[j] for p in parts]) for j in range(4))  # type: ignore
+        return self._nearest(o, d)
+
+    def _nearest(self, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        raise NotImplementedError
+
+
+class BoxSet(_BodySet):
     """``K`` boxes, each fixed in one of ``B`` frames (*bodies*), tested together.
 
     Box ``k`` has pose ``x_body = R_k x_k + c_k`` in body ``b_k``; a ray given in every
@@ -105,35 +143,15 @@ class BoxSet:
             indices in the scene); bodies: ``[K]`` body index ``b_k`` of each box.
     """
 
-    #: Ray–box pairs per pass (bounds the ``[n, K, 3]`` temporaries).
-    PAIRS = 1 << 19
-
     def __init__(self, rotations: np.ndarray, centres: np.ndarray, halves: np.ndarray,
                  textures: list[Texture], ids: list[int], bodies: list[int]):
-        self.R = torch.as_tensor(np.asarray(rotations, np.float64))
-        self.c = torch.as_tensor(np.asarray(centres, np.float64))
+        super().__init__(rotations, centres, textures, ids, bodies)
         self.half = torch.as_tensor(np.asarray(halves, np.float64))
-        self.table = TextureTable(textures)
-        self.ids = torch.as_tensor(ids, dtype=torch.long)
-        self.body = torch.as_tensor(bodies, dtype=torch.long)
         self.rad2 = (torch.linalg.norm(self.half, dim=-1) + 1e-6) ** 2     # bounding spheres
 
-    def __len__(self) -> int:
-        return int(self.c.shape[0])
-
-    def intersect(self, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Nearest box along rays given in every body's frame, ``o, d [N, B, 3]``.
-
-        Returns:
-            ``(s [N], k [N], n [N, 3], albedo [N, 3])``: distance (``inf`` = no box),
-            the box's position in the set (−1 = none), its outward normal in its body's
-            frame and its texture's albedo at the hit.
-        """
-        N, K = o.shape[0], len(self)
-        step = max(1, self.PAIRS // K)
-        if N > step:
-            parts = [self.intersect(o[i:i + step], d[i:i + step]) for i in range(0, N, step)]
-            return tuple(torch.cat([p[j] for p in parts]) for j in range(4))  # type: ignore
+    def _nearest(self, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """:meth:`_BodySet.intersect` for one chunk of rays (ties: the box listed first)."""
+        N = o.shape[0]
         u = o[:, self.body] - self.c                                       # [N, K, 3]
         dk = d[:, self.body]
         b = dot(u, dk)
@@ -160,7 +178,7 @@ class BoxSet:
         return s, out_k, n, alb
 
 
-class SphereSet:
+class SphereSet(_BodySet):
     """``K`` spheres, each fixed in one of ``B`` bodies (as :class:`BoxSet`), tested
     together: sphere ``k`` of radius ``r_k`` centred at ``c_k`` with orientation ``R_k``
     (for its texture) in body ``b_k``; the hit is :func:`intersect_sphere`'s, the
@@ -171,28 +189,14 @@ class SphereSet:
             bodies: as :class:`BoxSet`.
     """
 
-    PAIRS = 1 << 19
-
     def __init__(self, rotations: np.ndarray, centres: np.ndarray, radii: np.ndarray,
                  textures: list[Texture], ids: list[int], bodies: list[int]):
-        self.R = torch.as_tensor(np.asarray(rotations, np.float64))
-        self.c = torch.as_tensor(np.asarray(centres, np.float64))
+        super().__init__(rotations, centres, textures, ids, bodies)
         self.r = torch.as_tensor(np.asarray(radii, np.float64))
-        self.table = TextureTable(textures)
-        self.ids = torch.as_tensor(ids, dtype=torch.long)
-        self.body = torch.as_tensor(bodies, dtype=torch.long)
 
-    def __len__(self) -> int:
-        return int(self.c.shape[0])
-
-    def intersect(self, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Nearest sphere along rays given in every body's frame, ``o, d [N, B, 3]``;
-        returns ``(s [N], k [N], n [N, 3], albedo [N, 3])`` as :meth:`BoxSet.intersect`."""
-        N, K = o.shape[0], len(self)
-        step = max(1, self.PAIRS // K)
-        if N > step:
-            parts = [self.intersect(o[i:i + step], d[i:i + step]) for i in range(0, N, step)]
-            return tuple(torch.cat([p[j] for p in parts]) for j in range(4))  # type: ignore
+    def _nearest(self, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """:meth:`_BodySet.intersect` for one chunk of rays (ties: the sphere listed first)."""
+        N = o.shape[0]
         u = o[:, self.body] - self.c                                       # [N, K, 3]
         dk = d[:, self.body]
         b = dot(u, dk)
