@@ -50,8 +50,16 @@ def format_summary(metrics: Mapping[str, Any], out_dir: str | Path) -> str:
     if status == "collapsed":
         status = f"COLLAPSED — renders the empty field ({metrics.get('collapse_reason')})"
     mem = metrics.get("peak_mem_mb")
+    changed = [f"schedules {metrics['schedule']}" if metrics.get("schedule") == "compressed" else "",
+               f"size conf/sizing/{metrics['sizing']}.yaml" if metrics.get("sizing") else "",
+               "empty-space skipping" if metrics.get("skip") == "grid" else ""]
+    changed = [c for c in changed if c]
+    subject = metrics.get("psnr_subject")
     rows = [
         ("held-out PSNR", f"{_num(psnr, '.2f')} dB{gain}"),
+        *([("subject PSNR", f"{subject:.2f} dB   (the subject's pixels; gain over empty "
+                            f"{metrics.get('gain_psnr_subject', float('nan')):+.2f} dB)")]
+          if isinstance(subject, (int, float)) else []),
         ("SSIM", _num(metrics.get("ssim"), ".4f")),
         ("LPIPS", lp),
         ("status", status),
@@ -60,6 +68,8 @@ def format_summary(metrics: Mapping[str, Any], out_dir: str | Path) -> str:
                      f"({_num(metrics.get('sec_per_it'), '.3f')} s/it); "
                      f"{format_seconds(float(metrics.get('total_s') or 0))} in all"),
         ("peak memory", f"{mem / 1000:.1f} GB" if isinstance(mem, (int, float)) else "—"),
+        *([("CPU choices", "; ".join(changed) + "  (the paper's method otherwise)")]
+          if changed else []),
         ("run folder", str(out)),
         ("renders, GIFs", f"{out / 'renders'}/"),
         ("TensorBoard", f"make tensorboard  (or: tensorboard --logdir {out})"),
