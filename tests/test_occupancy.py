@@ -150,7 +150,7 @@ def test_fewer_samples_reach_the_field_and_the_grid_resumes_exactly():
     again.load_state_dict(state)
     assert torch.equal(again.occupancy.occupancy, r.occupancy.occupancy)
     for rr in (r, again):
-        rr.occupancy.update(lambda x, tt: rr.masked_density(field, x, tt),
+        rr.occupancy.update(lambda x, tt, rr=rr: rr.masked_density(field, x, tt),
                             torch.Generator().manual_seed(42))
     assert torch.equal(again.occupancy.density, r.occupancy.density)
 

@@ -22,7 +22,7 @@ MAX_LINES = 400
 
 def _modules() -> dict[str, Path]:
     mods = {}
-    for pkg, root in PACKAGES.items():
+    for root in PACKAGES.values():
         for path in root.rglob("*.py"):
             parts = path.relative_to(root.parent).with_suffix("").parts
             name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)

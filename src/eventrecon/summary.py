@@ -50,7 +50,7 @@ def format_summary(metrics: Mapping[str, Any], out_dir: str | Path) -> str:
     if status == "collapsed":
         status = f"COLLAPSED — renders the empty field ({metrics.get('collapse_reason')})"
     mem = metrics.get("peak_mem_mb")
-    changed = [f"schedules {metrics['schedule']}" if metrics.get("schedule") == "compressed" else "",
+    changed = ["schedules compressed" if metrics.get("schedule") == "compressed" else "",
                f"size conf/sizing/{metrics['sizing']}.yaml" if metrics.get("sizing") else "",
                "empty-space skipping" if metrics.get("skip") == "grid" else ""]
     changed = [c for c in changed if c]
