@@ -28,7 +28,10 @@ def test_backbone_trains_and_reports_metrics(model: str, data_dir: Path, tmp_pat
     cfg = tiny_config(data_dir, f"model={model}", "trainer.max_steps=30", *SMALL[model],
                       base=TINY)
     metrics = runner.run(cfg, tmp_path)
-    assert metrics["model"] == model and metrics["status"] == "ok"
+    # 30 steps may leave a backbone at its initial fog or at the empty field: the status is
+    # then judged by the collapse rule (within 0.05 dB of the empty field), never "failed"
+    assert metrics["model"] == model and metrics["status"] in ("ok", "collapsed")
+    assert (metrics["status"] == "collapsed") == (abs(metrics["gain_psnr"]) < 0.05)
     assert metrics["steps"] == 30 and metrics["nonfinite_steps"] == 0
     assert math.isfinite(metrics["psnr"]) and 0 < metrics["ssim"] <= 1
     assert metrics["psnr"] > 10.0  # a render, not noise or NaN
