@@ -36,7 +36,9 @@ def test_two_process_ddp_run_on_cpu(tmp_path: Path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "Starting with 2 processes" in proc.stdout + proc.stderr
     metrics = json.loads((run / "metrics.json").read_text())
-    assert metrics["status"] == "ok" and metrics["steps"] == 6 and metrics["psnr"] > 10
+    # 6 steps: "collapsed" (at the empty field) is a possible verdict, "failed" is not
+    assert metrics["status"] in ("ok", "collapsed")
+    assert metrics["steps"] == 6 and metrics["psnr"] > 10
     with (run / "seg0" / "curve.csv").open() as f:
         steps = [int(r["step"]) for r in csv.DictReader(f)]
     assert steps == [2, 4, 6, 6]  # one row per evaluation (rank 0 only): cheap x3, full
