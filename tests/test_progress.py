@@ -17,9 +17,10 @@ from omegaconf import OmegaConf
 
 from eventrecon import progress as progress_mod
 from eventrecon import runner
-from eventrecon.progress import Progress, TaskProgress
+from eventrecon.progress import Progress
 from eventrecon.records import run_info
 from eventrecon.summary import format_summary
+from eventrecon.taskprogress import TaskProgress
 
 LINE = re.compile(r"^segment 2/5  step (\d+)/(\d+) \((\d+)%\)  loss (\S+)  (\S+) s/it  "
                   r"eta (\S+)  psnr (.+)$")

@@ -33,10 +33,10 @@ from eventrecon.data.types import SplitData
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.metrics import evaluate_images, psnr, subject_scores
-from eventrecon.progress import TaskProgress
 from eventrecon.records import run_info
 from eventrecon.render.volume import Renderer
 from eventrecon.segments import crossfade_weights, run_segments, run_window
+from eventrecon.taskprogress import TaskProgress
 
 __all__ = ["render_heldout", "encode", "score_images", "cheap_psnr", "evaluate_heldout",
            "write_renders", "render_and_score", "evaluate_models", "evaluate_run",

@@ -9,8 +9,8 @@ it logs one plain line about every ``every_s`` seconds — no carriage-return fr
     segment 1/1  step 400/1000 (40%)  loss 0.2081  0.101 s/it  eta 1m01s  psnr 24.31 dB
 
 ``mode``: ``auto`` (a bar when stderr is a terminal, else lines), ``bar``, ``log`` or
-``none``. :class:`TaskProgress` does the same for long work outside training
-(full-image evaluation, simulation).
+``none``. Long work outside training (full-image evaluation, simulation, reading a
+dataset) reports through :class:`eventrecon.taskprogress.TaskProgress`.
 """
 
 from __future__ import annotations
@@ -23,25 +23,11 @@ from typing import Any
 
 import lightning.pytorch as pl
 
-__all__ = ["Progress", "TaskProgress", "format_seconds", "progress_mode"]
+from eventrecon.taskprogress import format_seconds
+
+__all__ = ["Progress", "progress_mode"]
 
 log = logging.getLogger("eventrecon.progress")
-
-
-def format_seconds(s: float) -> str:
-    """``3725 -> '1h02m'``, ``61 -> '1m01s'``, ``5.2 -> '5s'``.
-
-    >>> format_seconds(3725), format_seconds(61), format_seconds(5.2), format_seconds(float("nan"))
-    ('1h02m', '1m01s', '5s', '?')
-    """
-    if not math.isfinite(s):
-        return "?"
-    s = max(0.0, s)
-    if s >= 3600:
-        return f"{int(s // 3600)}h{int(s % 3600 // 60):02d}m"
-    if s >= 60:
-        return f"{int(s // 60)}m{int(s % 60):02d}s"
-    return f"{s:.0f}s"
 
 
 def progress_mode(mode: str) -> str:
@@ -129,30 +115,3 @@ class Progress(pl.Callback):
         if self.bar is not None:
             self.bar.close()
             self.bar = None
-
-
-class TaskProgress:
-    """Progress of a counted task outside training: a line about every ``every_s``
-    seconds (``done/total``, rate, time left), or nothing for short tasks.
-
-    >>> p = TaskProgress("evaluation", 3, every_s=0.0)
-    >>> p.step(); p.step(); p.step()
-    """
-
-    def __init__(self, what: str, total: int, every_s: float = 30.0) -> None:
-        self.what, self.total, self.every_s = what, int(total), float(every_s)
-        self.done = 0
-        self._t0 = self._last = time.perf_counter()
-
-    def step(self, n: int = 1) -> None:
-        """``n`` more units done; log a line when one is due."""
-        self.done += n
-        now = time.perf_counter()
-        if now - self._last < self.every_s and self.done < self.total:
-            return
-        self._last = now
-        rate = (now - self._t0) / max(self.done, 1)
-        if self.done < self.total or now - self._t0 >= self.every_s:
-            log.info("%s: %d/%d (%.0f%%)  %.2f s each  eta %s", self.what, self.done,
-                     self.total, 100.0 * self.done / max(self.total, 1), rate,
-                     format_seconds((self.total - self.done) * rate))

@@ -52,6 +52,7 @@ from eventrecon.data.views import list_views, match_views
 from eventrecon.errors import InputError
 from eventrecon.events.stream import EventStream
 from eventrecon.render.cameras import Cameras, cameras_from_camdict
+from eventrecon.taskprogress import TaskProgress
 
 __all__ = ["read_split", "read_dataset", "SPLITS"]
 
@@ -155,7 +156,11 @@ def _read_frames(split: Path, names: list[str], ref: Path,
         return np.zeros(0, np.float64), np.zeros((0, len(names), 0, 0, 3), np.uint8)
     folders = _frame_folders(rgb)
     times = np.array([t for t, _ in folders], np.float64)
-    frames = [_read_view_images(d, names, ref, size) for _, d in folders]
+    progress = TaskProgress(f"reading {split.name} frames", len(folders))
+    frames = []
+    for _, d in folders:
+        frames.append(_read_view_images(d, names, ref, size))
+        progress.step()
     for (_, d), fr in zip(folders, frames):
         if fr.ndim != frames[0].ndim:
             raise InputError(d, "channels", f"the channel layout of {folders[0][1]}",

@@ -27,6 +27,7 @@ from eventrecon.sim.frame_effects import FrameContext
 from eventrecon.sim.raytrace import PixelRenderer
 from eventrecon.sim.scene import Scene
 from eventrecon.sim.spec import SceneSpec
+from eventrecon.taskprogress import TaskProgress
 
 __all__ = ["render_frames", "render_backgrounds", "render_masks", "empty_scene",
            "apply_frame_effects"]
@@ -60,9 +61,12 @@ def render_frames(spec: SceneSpec, prend: PixelRenderer, times: np.ndarray,
         ``[F, V, H, W, 3]`` uint8 (``[F, V, H, W]`` after ``bayer_raw``), sRGB-encoded.
     """
     out = []
+    progress = TaskProgress(f"rendering {'frames' if effects else 'ground truth'}",
+                            len(times) * len(prend.cams))
     for k, tu in enumerate(times):
         row = []
         for v in range(len(prend.cams)):
+            progress.step()
             t = float(tu) / TIME_SPAN
             img = prend.image(v, t).numpy()
             if effects:
