@@ -14,8 +14,10 @@ Fields (defaults in brackets; time units ``u`` span ``[0, 1000]``):
   a pixel-centre ground truth aliases at texture and silhouette edges, which no model
   trained on jittered rays can reproduce);
 - ``rig``: ``n_train`` [6], ``n_heldout`` [1], ``radius`` [2.5], ``elevation_deg`` [15],
-  ``fov_deg`` [32], ``target`` [[0, −0.25, 0]], ``dist`` [zeros], or ``camdict: PATH``
-  (the last ``n_heldout`` views of the file are held out);
+  ``fov_deg`` [32], ``target`` [[0, −0.25, 0]], ``dist`` [zeros], ``heldout_azimuth_deg``
+  [180 / n_train: half-way between training cameras 0 and 1; the held-out ring is
+  rotated by it], or ``camdict: PATH`` (the last ``n_heldout`` views of the file are
+  held out);
 - ``objects``, ``light``, ``background`` (:mod:`eventrecon.sim.scene`);
 - ``events``, ``frames``: ordered effect lists (:mod:`eventrecon.sim.event_effects`,
   :mod:`eventrecon.sim.frame_effects`).
@@ -178,7 +180,8 @@ def build_cameras(spec: SceneSpec) -> tuple[Cameras, Cameras]:
               target=tuple(get_vec(r, "target", 3, w, "rig.", (0.0, -0.25, 0.0))),
               dist=tuple(get_vec(r, "dist", 5, w, "rig.", (0.0,) * 5)))
     train = ring_rig(n_tr, spec.width, spec.height, **kw)
+    held_az = get(r, "heldout_azimuth_deg", float, w, "rig.", 180.0 / n_tr)
     held = ring_rig(max(n_held, 1), spec.width, spec.height,
-                    azimuth_offset_deg=180.0 / n_tr, names=[f"{n_tr + i:02d}"
+                    azimuth_offset_deg=held_az, names=[f"{n_tr + i:02d}"
                                                            for i in range(max(n_held, 1))], **kw)
     return train, held.select(range(n_held))
