@@ -18,14 +18,14 @@ run's own metric (all ground-truth times, every view). A gain that drops from th
 training poses to the held-out pose is what the unseen viewpoint costs; a drop from frame
 times to mid-times is what interpolating in time costs.
 
-PSNR = −10 log10 MSE over all pixels of the 8-bit-encoded images, in [0, 1].
+PSNR as the runs report it (:func:`eventrecon.metrics.psnr`: the mean over images of
+−10 log10 MSE, on the 8-bit-encoded images in [0, 1]).
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
-import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -40,17 +40,12 @@ from eventrecon.data.batcher import background_linear
 from eventrecon.data.selection import heldout_split
 from eventrecon.data.types import SplitData
 from eventrecon.evaluate import encode, render_heldout
+from eventrecon.metrics import psnr
 from eventrecon.segments import run_segments
 from eventrecon.sim.raytrace import PixelRenderer
 from eventrecon.sim.spec import build_cameras, parse_spec
 
 log = logging.getLogger("benchmarks.heldout")
-
-
-def psnr01(a: np.ndarray, b: np.ndarray) -> float:
-    """PSNR of two stacks of images in [0, 1] (all pixels pooled)."""
-    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
-    return -10.0 * math.log10(max(mse, 1e-12))
 
 
 def mid_times(times: np.ndarray) -> np.ndarray:
@@ -64,9 +59,9 @@ def mid_times(times: np.ndarray) -> np.ndarray:
 
 def clean_truth(prend: PixelRenderer, times_u: np.ndarray) -> np.ndarray:
     """``[F, V, H, W, 3]`` clean ground truth in [0, 1] (sRGB-encoded 8 bit, as stored)."""
-    out = [[linear_to_srgb(prend.image(v, float(t) / TIME_SPAN).numpy()) for v in
-            range(len(prend.cams))] for t in times_u]
-    return np.asarray(out, np.float32) / 255.0
+    t = torch.as_tensor(np.asarray(times_u, np.float64) / TIME_SPAN)
+    per_view = [linear_to_srgb(prend.images(v, t).numpy()) for v in range(len(prend.cams))]
+    return np.stack(per_view, axis=1).astype(np.float32) / 255.0
 
 
 def score_cell(models, segments, split: SplitData, times_u: np.ndarray,
@@ -78,8 +73,9 @@ def score_cell(models, segments, split: SplitData, times_u: np.ndarray,
     pred = np.stack([[encode(renders[a, b]) for b in views] for a in range(len(times_u))])
     truth = clean_truth(prend, times_u)
     bg = encode(background_linear(split).clamp(0, 1).numpy())  # [V, H, W, 3]
-    empty = np.broadcast_to(bg[None], truth.shape)
-    p, e = psnr01(pred, truth), psnr01(empty, truth)
+    flat = truth.reshape(-1, *truth.shape[2:])
+    p = psnr(pred.reshape(flat.shape), flat)
+    e = psnr(np.broadcast_to(bg[None], truth.shape).reshape(flat.shape), flat)
     return {"psnr": p, "empty": e, "gain": p - e, "images": int(truth.shape[0] * truth.shape[1])}
 
 

@@ -66,7 +66,6 @@ def render_frames(spec: SceneSpec, prend: PixelRenderer, times: np.ndarray,
     for k, tu in enumerate(times):
         row = []
         for v in range(len(prend.cams)):
-            progress.step()
             t = float(tu) / TIME_SPAN
             img = prend.image(v, t).numpy()
             if effects:
@@ -74,6 +73,7 @@ def render_frames(spec: SceneSpec, prend: PixelRenderer, times: np.ndarray,
                                    prend.cams.K[v].numpy(), spec.max_step)
                 img = apply_frame_effects(spec, img, ctx, (0, v, k))
             row.append(linear_to_srgb(img))
+            progress.step()
         out.append(np.stack(row))
     return np.stack(out)
 
