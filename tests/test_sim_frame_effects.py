@@ -112,3 +112,32 @@ def test_frame_pipeline_gamma_and_order():
         build({"name": "crf", "eps": 0.03}, {"name": "exposure_blur", "exposure_s": 0.1})
     with pytest.raises(InputError, match=r"frames\[0\].photons"):
         build({"name": "low_light", "photons": 0.0})
+
+
+def _plate(frames: list, exposures: int) -> np.ndarray:
+    """Linear ``[H, W, 3]`` training-split plate of a 24×18 empty-ish scene."""
+    cfg = {"name": "p", "width": 24, "height": 18, "seed": 2,
+           "rig": {"n_train": 1, "n_heldout": 0}, "background": [0.05, 0.05, 0.05],
+           "objects": [], "frames": frames, "background_exposures": exposures}
+    spec = parse_spec(cfg)
+    cams, _ = build_cameras(spec)
+    return srgb_to_linear(render_backgrounds(spec, PixelRenderer(spec.scene, cams))[0])
+
+
+def test_background_plate_averages_the_noise_of_its_exposures():
+    """The plate is the mean of N exposures: the noise about the noise-free chain shrinks
+    by √N (√16 = 4) and its mean stays that of a frame (no darkening by the gamma)."""
+    clean = _plate([{"name": "vignetting", "strength": 0.3}, {"name": "quantize_8bit"}], 1)
+    noisy = [{"name": "vignetting", "strength": 0.3},
+             {"name": "low_light", "photons": 300.0, "read_noise": 0.01},
+             {"name": "quantize_8bit"}]
+    one, sixteen = _plate(noisy, 1), _plate(noisy, 16)
+    rms = lambda x: float(np.sqrt(np.mean((x - clean) ** 2)))  # noqa: E731
+    assert rms(one) > 0.008                       # a single dark frame is noisy
+    assert 0.18 < rms(sixteen) / rms(one) < 0.35  # ≈ 1/4
+    assert abs(sixteen.mean() - clean.mean()) < 0.1 * clean.mean()
+    # a scene without frame noise gets the same plate whatever N is
+    det = [{"name": "vignetting", "strength": 0.3}, {"name": "quantize_8bit"}]
+    np.testing.assert_array_equal(_plate(det, 1), _plate(det, 32))
+    with pytest.raises(InputError, match="background_exposures"):
+        _plate(det, 0)

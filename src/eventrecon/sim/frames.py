@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from eventrecon import TIME_SPAN
-from eventrecon.data.types import linear_to_srgb
+from eventrecon.data.types import linear_to_srgb, srgb_to_linear
 from eventrecon.sim.config import effect_rng
 from eventrecon.sim.frame_effects import FrameContext
 from eventrecon.sim.raytrace import PixelRenderer
@@ -80,18 +80,37 @@ def render_frames(spec: SceneSpec, prend: PixelRenderer, times: np.ndarray,
 
 def render_backgrounds(spec: SceneSpec, prend: PixelRenderer, effects: bool = True
                        ) -> np.ndarray:
-    """``[V, H, W, 3]`` uint8 empty-scene frame per view (``[V, H, W]`` for Bayer raw)."""
+    """``[V, H, W, 3]`` uint8 empty-scene plate per view (``[V, H, W]`` for Bayer raw).
+
+    With ``effects``, the plate is captured as a practitioner would: ``N =
+    spec.background_exposures`` frames of the empty scene, each through the frame effects
+    with its own noise draw and 8-bit encoding, linearised, averaged and encoded again,
+
+    .. math:: B = q\\big(\\tfrac1N \\textstyle\\sum_{k<N} q^{-1}(q(f_k(I)))\\big),
+
+    ``q`` the 8-bit gamma encoding, ``f_k`` the effect chain with noise draw ``k``
+    (averaging the linear values keeps the plate's mean that of the frames; averaging
+    the encoded values would darken a noisy dark plate). Deterministic
+    effects (vignetting, the CRF offset, blur of a still scene) survive unchanged; a noise
+    effect's spread shrinks by ``√N``. Without effects, the clean sRGB empty scene.
+    """
     empty = PixelRenderer(empty_scene(spec.scene), prend.cams, spec.frame_supersample)
+    n_exp = spec.background_exposures if spec.frame_effects else 1
     out = []
     for v in range(len(prend.cams)):
         img = empty.image(v, 0.0).numpy()
-        if effects:
-            def still(times: np.ndarray, img=img) -> np.ndarray:
-                return np.broadcast_to(img, (len(np.atleast_1d(times)),) + img.shape)
-            ctx = FrameContext(still, 0.0, spec.duration_s, prend.cams.K[v].numpy(),
-                               spec.max_step)
-            img = apply_frame_effects(spec, img, ctx, (1, v, 0))
-        out.append(linear_to_srgb(img))
+        if not effects:
+            out.append(linear_to_srgb(img))
+            continue
+
+        def still(times: np.ndarray, img=img) -> np.ndarray:
+            return np.broadcast_to(img, (len(np.atleast_1d(times)),) + img.shape)
+        ctx = FrameContext(still, 0.0, spec.duration_s, prend.cams.K[v].numpy(),
+                           spec.max_step)
+        total = sum(srgb_to_linear(linear_to_srgb(apply_frame_effects(spec, img, ctx,
+                                                                      (1, v, k))))
+                    for k in range(n_exp))
+        out.append(linear_to_srgb(total / n_exp))
     return np.stack(out)
 
 

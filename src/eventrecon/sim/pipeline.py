@@ -40,8 +40,9 @@ log = logging.getLogger(__name__)
 #: 2: both splits carry subject masks (``mask/<frame>/<view>.png``); datasets cached by
 #: version 1 have none and are never reused. 3: the event core finds the crossings where
 #: the signal turns (curvature bound, refined extrema) and frames may be area-averaged
-#: (``frame_supersample``).
-SIM_VERSION: int = 3
+#: (``frame_supersample``). 4: the training background plate averages
+#: ``background_exposures`` exposures (a single noisy frame before).
+SIM_VERSION: int = 4
 
 
 def _meta(spec: SceneSpec, stats: dict) -> dict:

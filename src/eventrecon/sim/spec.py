@@ -13,6 +13,10 @@ Fields (defaults in brackets; time units ``u`` span ``[0, 1000]``):
   backgrounds, masks and ground-truth renders (an area-averaged pixel, as a camera's:
   a pixel-centre ground truth aliases at texture and silhouette edges, which no model
   trained on jittered rays can reproduce);
+- ``background_exposures`` [32] exposures averaged into each view's empty-scene plate
+  (``background/``), as a plate is captured: the frame effects run on every exposure and
+  the 8-bit frames are averaged, so a noise effect's spread shrinks by √N while vignetting,
+  the CRF offset and blur stay (1 = a single frame, as noisy as a training frame);
 - ``rig``: ``n_train`` [6], ``n_heldout`` [1], ``radius`` [2.5], ``elevation_deg`` [15],
   ``fov_deg`` [32], ``target`` [[0, −0.25, 0]], ``dist`` [zeros], ``heldout_azimuth_deg``
   [180 / n_train: half-way between training cameras 0 and 1; the held-out ring is
@@ -66,6 +70,7 @@ class SceneSpec:
     min_step: float
     supersample: int
     frame_supersample: int
+    background_exposures: int
     rig: dict
     scene: Scene
     event_effects: list[Effect] = field(default_factory=list)
@@ -125,6 +130,8 @@ def parse_spec(cfg: object, where: str | None = None) -> SceneSpec:
         frame_supersample=get(raw, "frame_supersample", int, w,
                               default=get(raw, "supersample", int, w, default=1, check=_pos),
                               check=_pos),
+        background_exposures=get(raw, "background_exposures", int, w, default=32,
+                                 check=_pos, expect="a number of exposures ≥ 1"),
         rig=dict(rig), scene=parse_scene(raw, w),
         event_effects=EVENT_EFFECTS.build(raw.get("events"), w),
         frame_effects=FRAME_EFFECTS.build(raw.get("frames"), w),
