@@ -135,7 +135,9 @@ def test_background_plate_averages_the_noise_of_its_exposures():
     rms = lambda x: float(np.sqrt(np.mean((x - clean) ** 2)))  # noqa: E731
     assert rms(one) > 0.008                       # a single dark frame is noisy
     assert 0.18 < rms(sixteen) / rms(one) < 0.35  # ≈ 1/4
-    assert abs(sixteen.mean() - clean.mean()) < 0.1 * clean.mean()
+    # linear averaging keeps the mean (measured −0.3 %); averaging the 8-bit codes would
+    # darken this dark plate by 4.0 %
+    assert abs(sixteen.mean() - clean.mean()) < 0.02 * clean.mean()
     # a scene without frame noise gets the same plate whatever N is
     det = [{"name": "vignetting", "strength": 0.3}, {"name": "quantize_8bit"}]
     np.testing.assert_array_equal(_plate(det, 1), _plate(det, 32))
