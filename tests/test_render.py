@@ -13,7 +13,8 @@ from eventrecon.fields.base import Field
 from eventrecon.render.cameras import ring_rig
 from eventrecon.render.clipping import Cylinder
 from eventrecon.render.samplers import interval_edges, sample_pdf, stratified
-from eventrecon.render.volume import Renderer, composite, render_weights
+from eventrecon.render.volume import (Renderer, composite, padded_rows, query_field,
+                                      render_weights)
 
 
 class ConstantField(Field):
@@ -344,9 +345,10 @@ def test_missed_rays_are_not_sent_to_the_field() -> None:
     field = WallField(0.0, 1.0, (1, 1, 1))
     o, d = _ray([-2, -0.25, 0], [1, 0, 0])
     o2, d2 = _ray([-2, -0.25, 0], [0, 0, 1])
-    Renderer(8, 4)(field, torch.cat([o, o2]).float(), torch.cat([d, d2]).float(),
-                   torch.zeros(2, 1), torch.zeros(2, 3))
-    assert field.calls == 8 + 4
+    renderer = Renderer(8, 4, query_buckets=0)
+    renderer(field, torch.cat([o, o2]).float(), torch.cat([d, d2]).float(),
+             torch.zeros(2, 1), torch.zeros(2, 3))
+    assert field.calls == 8 + 4 and renderer.field_inputs == 8 + 4
 
 
 def test_render_image_matches_forward_on_the_same_rays() -> None:
@@ -378,3 +380,33 @@ def test_random_draws_come_from_the_generators_device_and_move_to_the_rays() -> 
         cpu, uniform((4, 5), torch.Generator().manual_seed(3), torch.empty(0, dtype=torch.float64)))
     near, far = torch.zeros(4, device="meta"), torch.ones(4, device="meta")
     assert stratified(near, far, 8, True, torch.Generator().manual_seed(0)).device.type == "meta"
+
+
+def test_padded_rows_repeat_few_sizes_and_waste_at_most_one_step() -> None:
+    sizes = [padded_rows(m, 8) for m in range(1, 20001)]
+    assert all(r >= m and r % 64 == 0 for m, r in zip(range(1, 20001), sizes))
+    # at most one geometric step (2^(1/8): 9.05 % more) and the rounding to 64 rows
+    assert all(r <= m * 2 ** (1 / 8) + 64 for m, r in zip(range(1, 20001), sizes))
+    assert len(set(sizes[1999:3999])) <= 9           # m in [2000, 4000): one octave
+    assert padded_rows(3000, 0) == 3000 and padded_rows(0, 8) == 0
+
+
+def test_padded_field_queries_give_the_same_values_and_gradients() -> None:
+    from eventrecon.fields import NeRFField
+
+    torch.manual_seed(0)
+    field = NeRFField(depth=2, width=32, skip=-1, remap_width=32, colour_width=16,
+                      anneal_steps=0)
+    x, t = torch.rand(1000, 3) - 0.5, torch.rand(1000, 1)
+    grads = []
+    for per_octave in (0, 8):
+        field.zero_grad()
+        sigma, rgb = query_field(field, x, t, per_octave)
+        assert sigma.shape == (1000,) and rgb.shape == (1000, 3)
+        (sigma.square().sum() + rgb.sum()).backward()
+        grads.append((sigma.detach(), rgb.detach(),
+                      [p.grad.clone() for p in field.parameters() if p.grad is not None]))
+    (s0, c0, g0), (s8, c8, g8) = grads
+    assert torch.allclose(s0, s8, atol=1e-6) and torch.allclose(c0, c8, atol=1e-6)
+    assert len(g0) == len(g8) > 0
+    assert all(torch.allclose(a, b, rtol=1e-5, atol=1e-6) for a, b in zip(g0, g8))

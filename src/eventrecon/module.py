@@ -128,6 +128,7 @@ class EventNeRFModule(L.LightningModule):
         d = batch["rays_d"].repeat(3, 1)
         t = torch.cat([batch["t0"], batch["t1"], batch["t_ref"]], 0)
         bg = batch["bg"].repeat(3, 1)
+        self.renderer.field_inputs = 0
         levels = self.renderer(self.field, o, d, t, bg, perturb=perturb, gen=gen)
         out = []
         for lv in levels:
@@ -140,6 +141,7 @@ class EventNeRFModule(L.LightningModule):
         step = int(self.global_step)
         gen = step_generator(self.step_cfg.seed, step, stream=int(self.global_rank))
         batch = self.batcher.sample(self.step_cfg.n_rays, gen)
+        n_rays = int(batch["rays_o"].shape[0])
         self.last_window = self.batcher.last_window  # Python floats: no device sync
         levels = self.render_three(batch, gen)
         terms = total_loss(levels, batch, self.loss_cfg, step)
@@ -160,6 +162,8 @@ class EventNeRFModule(L.LightningModule):
             for k, v in terms.items():
                 self.log(f"train/{k}", v.detach(), on_step=True, on_epoch=False)
             self.log("train/lr", self.trainer.optimizers[0].param_groups[0]["lr"],
+                     on_step=True, on_epoch=False)
+            self.log("train/samples_per_ray", self.renderer.field_inputs / max(1, 3 * n_rays),
                      on_step=True, on_epoch=False)
             self.log("train/clip_scale", float(self.renderer.clip_scale), on_step=True,
                      on_epoch=False)
