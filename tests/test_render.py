@@ -13,8 +13,7 @@ from eventrecon.fields.base import Field
 from eventrecon.render.cameras import ring_rig
 from eventrecon.render.clipping import Cylinder
 from eventrecon.render.samplers import interval_edges, sample_pdf, stratified
-from eventrecon.render.volume import (Renderer, composite, padded_rows, query_field,
-                                      render_weights)
+from eventrecon.render.volume import Renderer, composite, padded_rows, query_field, render_weights
 
 
 class ConstantField(Field):
