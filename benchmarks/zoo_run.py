@@ -192,21 +192,18 @@ def time_render(module: EventNeRFModule, cfg: DictConfig, n_images: int, width: 
                     target=tuple(rig.get("target", (0.0, -0.25, 0.0))))
     field, renderer = module.field, module.renderer
     field.eval()
-    counter = SampleCounter(field)
     times, per_px = [], []
     try:
         for v in range(n_images):
             cams.image_rays(v)
             sync(module.device)
-            counter.on = True
+            renderer.field_inputs = 0
             t0 = time.perf_counter()
             renderer.render_image(field, cams, v, (v + 0.5) / n_images)
             sync(module.device)
             times.append(time.perf_counter() - t0)
-            counter.on = False
-            per_px.append(counter.count(counter.take()) / (width * height))
+            per_px.append(renderer.field_inputs / (width * height))
     finally:
-        counter.handle.remove()
         field.train()
     return {"render_s": statistics.median(times), "render_samples_per_px":
             statistics.median(per_px)}
@@ -239,7 +236,8 @@ def time_steps(module: EventNeRFModule, step0: int, warmup: int, reps: int, seed
     the AdamW step (``optim_s``). ``rest_s = real_s − field_s − optim_s`` is what the
     step spends outside the field: sampling, compositing, losses and their backward.
     Real and bare steps alternate (same background load); medians over ``reps`` after
-    ``warmup`` steps. ``samples_per_ray`` = field inputs of a real step / (3 · n_rays).
+    ``warmup`` steps. ``samples_per_ray`` = samples the renderer sent to the field in a
+    real step (:attr:`Renderer.field_inputs`, without the padded rows) / (3 · n_rays).
     """
     field, cfg_s = module.field, module.step_cfg
     field.train()
@@ -307,7 +305,8 @@ def time_steps(module: EventNeRFModule, step0: int, warmup: int, reps: int, seed
                 rows["real"].append(real_s)
                 rows["field"].append(field_s)
                 rows["optim"].append(optim_s)
-                rows["samples"].append(counter.count(calls) / (3 * cfg_s.n_rays))
+                # the renderer's count: its samples, not the padded rows the field saw
+                rows["samples"].append(module.renderer.field_inputs / (3 * cfg_s.n_rays))
     finally:
         counter.handle.remove()
     if grid is not None and not updates:
