@@ -27,7 +27,6 @@ autocast.
 from __future__ import annotations
 
 import itertools
-import math
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -38,6 +37,7 @@ from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.render.clipping import NO_CLIPPING, Cylinder
 from eventrecon.render.occupancy import OccupancyGrid
+from eventrecon.render.queries import padded_rows, query_field
 from eventrecon.render.samplers import interval_edges, sample_pdf, stratified
 
 if TYPE_CHECKING:
@@ -49,42 +49,6 @@ __all__ = ["TAU_MAX", "render_weights", "composite", "padded_rows", "query_field
 TAU_MAX = 1e4
 #: Slack (world units) when testing sample points against the cylinder.
 _INSIDE_TOL = 1e-5
-
-
-def padded_rows(m: int, per_octave: int) -> int:
-    """The row count a field is called with for ``m`` samples: ``m`` rounded up to the
-    next of ``per_octave`` geometric steps per doubling (``2^{⌈k·log2 m⌉/k}``), then to a
-    multiple of 64; ``m`` itself when ``per_octave`` is 0 (or ``m`` is 0).
-
-    Why: with skipping, the number of samples that reach the field changes every call,
-    and on CPU each new row count of a bf16 linear layer builds a new oneDNN kernel.
-    Measured on the 4×64 NeRF MLP (2 cores, bf16 autocast, forward + backward): 1.6–2.3
-    µs per sample for a repeated size, 3.9–5.1 µs for a new size every call, 2.3–2.6 µs
-    with 8 steps per octave; ``make train`` ran at 0.11–0.12 s/step with a sparse grid
-    and 0.073 s/step once every sample (one size) reached the field. The padding costs
-    at most ``2^{1/k} − 1`` more samples (9 % at ``k = 8``).
-
-    >>> padded_rows(1000, 8), padded_rows(1000, 0), padded_rows(0, 8)
-    (1024, 1000, 0)
-    """
-    if per_octave <= 0 or m <= 0:
-        return m
-    size = 2.0 ** (math.ceil(per_octave * math.log2(m) - 1e-9) / per_octave)
-    return max(m, 64 * math.ceil(size / 64))
-
-
-def query_field(field: Field, x: Tensor, t: Tensor, per_octave: int = 8
-                ) -> tuple[Tensor, Tensor]:
-    """``field(x [M, 3], t [M, 1])`` → ``σ [M]``, ``rgb [M, 3]``, evaluated on
-    :func:`padded_rows` rows: the extra rows repeat the first sample and are cut off
-    again, so values and gradients are those of the ``M`` samples alone."""
-    m = x.shape[0]
-    rows = padded_rows(m, per_octave)
-    if rows > m:
-        x = torch.cat([x, x[:1].expand(rows - m, -1)])
-        t = torch.cat([t, t[:1].expand(rows - m, -1)])
-    sigma, rgb = field(x, t)
-    return sigma[:m], rgb[:m]
 
 
 def render_weights(sigma: Tensor, delta: Tensor) -> tuple[Tensor, Tensor]:
