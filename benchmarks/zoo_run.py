@@ -173,11 +173,6 @@ class SampleCounter:
         calls, self.calls = self.calls, []
         return calls
 
-    @staticmethod
-    def count(calls: Sequence[tuple[Tensor, Tensor]]) -> int:
-        """Samples in ``calls``."""
-        return sum(int(x.shape[0]) for x, _ in calls)
-
 
 @torch.no_grad()
 def time_render(module: EventNeRFModule, cfg: DictConfig, n_images: int, width: int = 346,

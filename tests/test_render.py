@@ -12,8 +12,9 @@ from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.render.cameras import ring_rig
 from eventrecon.render.clipping import Cylinder
+from eventrecon.render.queries import padded_rows, query_field
 from eventrecon.render.samplers import interval_edges, sample_pdf, stratified
-from eventrecon.render.volume import Renderer, composite, padded_rows, query_field, render_weights
+from eventrecon.render.volume import Renderer, composite, render_weights
 
 
 class ConstantField(Field):
@@ -397,6 +398,8 @@ def test_padded_field_queries_give_the_same_values_and_gradients() -> None:
     field = NeRFField(depth=2, width=32, skip=-1, remap_width=32, colour_width=16,
                       anneal_steps=0)
     x, t = torch.rand(1000, 3) - 0.5, torch.rand(1000, 1)
+    seen: list[int] = []
+    field.register_forward_hook(lambda _m, inputs, _o: seen.append(int(inputs[0].shape[0])))
     grads = []
     for per_octave in (0, 8):
         field.zero_grad()
@@ -405,6 +408,7 @@ def test_padded_field_queries_give_the_same_values_and_gradients() -> None:
         (sigma.square().sum() + rgb.sum()).backward()
         grads.append((sigma.detach(), rgb.detach(),
                       [p.grad.clone() for p in field.parameters() if p.grad is not None]))
+    assert seen == [1000, 1024]                      # the field really saw padded rows
     (s0, c0, g0), (s8, c8, g8) = grads
     assert torch.allclose(s0, s8, atol=1e-6) and torch.allclose(c0, c8, atol=1e-6)
     assert len(g0) == len(g8) > 0

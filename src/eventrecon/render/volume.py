@@ -37,13 +37,13 @@ from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.render.clipping import NO_CLIPPING, Cylinder
 from eventrecon.render.occupancy import OccupancyGrid
-from eventrecon.render.queries import padded_rows, query_field
+from eventrecon.render.queries import query_field
 from eventrecon.render.samplers import interval_edges, sample_pdf, stratified
 
 if TYPE_CHECKING:
     from eventrecon.render.cameras import Cameras
 
-__all__ = ["TAU_MAX", "render_weights", "composite", "padded_rows", "query_field", "Renderer"]
+__all__ = ["TAU_MAX", "render_weights", "composite", "Renderer"]
 
 #: Optical thickness clamp per step (``e^{-TAU_MAX}`` is 0 in float32).
 TAU_MAX = 1e4
