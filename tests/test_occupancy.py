@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 from torch import Tensor, nn
 
@@ -169,3 +170,19 @@ def test_grid_marks_outside_the_cylinder_empty():
     centre = torch.tensor([[0.0, -0.25, 0.0]])
     assert not g.occupied(corner, torch.zeros(2, 1)).any()
     assert g.occupied(centre, torch.zeros(1, 1)).all()
+
+
+def test_a_fog_below_the_threshold_keeps_its_denser_half_instead_of_emptying_the_grid():
+    grid = OccupancyGrid([-1, -1, -1], [1, 1, 1], resolution=4, time_bins=1, threshold=0.01)
+    # a thin fog: σ = 0.004 for x < 0, 0.006 for x > 0, everywhere under the threshold 0.01;
+    # the mean over the 64 asked cells is 0.005, so τ = 0.005 and only the x > 0 half (and
+    # its dilation by one cell, x ∈ [-0.5, 0]) stays occupied
+    assert grid.update(lambda x, t: 0.004 + 0.002 * (x[:, 0] > 0).float(),
+                       torch.Generator().manual_seed(0)) == 64
+    assert float(grid.effective_threshold()) == pytest.approx(0.005)
+    probe = torch.tensor([[-0.9, 0.0, 0.0], [-0.2, 0.0, 0.0], [0.9, 0.0, 0.0]])
+    assert grid.occupied(probe, torch.zeros(3, 1)).tolist() == [False, True, True]
+    assert grid.occupied_fraction() == pytest.approx(0.75)
+    # a field denser than the threshold somewhere keeps the configured threshold
+    grid.update(lambda x, t: 5.0 * (x[:, 0] > 0.5).float(), torch.Generator().manual_seed(1))
+    assert float(grid.effective_threshold()) == pytest.approx(0.01)

@@ -207,3 +207,25 @@ def test_a_longer_trained_segment_is_not_silently_reused(data_dir: Path, tmp_pat
         runner.run(shorter, tmp_path)
     longer = runner.run(tiny_config(data_dir, "trainer.max_steps=8", "evaluate=false"), tmp_path)
     assert longer["steps"] == 8  # resumed from step 6 and trained on
+
+
+def test_lr_decays_exponentially_to_the_end_factor(data_dir: Path):
+    cfg = tiny_config(data_dir, "trainer.max_steps=8", "trainer.lr_end_factor=0.1")
+    ds = build.load_dataset(cfg)
+    module = build.build_module(cfg, build.scene_properties(cfg, ds), ds.splits["train"],
+                                Segment(0, 1000))
+    seen: list[float] = []
+
+    class Probe(L.Callback):
+        def on_train_batch_end(self, trainer, *_):
+            seen.append(trainer.optimizers[0].param_groups[0]["lr"])
+
+    L.Trainer(max_steps=8, logger=False, enable_checkpointing=False, callbacks=[Probe()],
+              enable_progress_bar=False, enable_model_summary=False,
+              accelerator="cpu").fit(module)
+    lr0 = float(cfg.model.optim.lr)
+    # lr_s = lr0 · 0.1^(s / 8): 1× at the first step, 0.1^(7/8)× at the last of 8
+    assert seen == pytest.approx([lr0 * 0.1 ** (s / 8) for s in range(8)], rel=1e-9)
+    with pytest.raises(InputError, match="trainer.lr_end_factor"):
+        build.build_module(tiny_config(data_dir, "trainer.lr_end_factor=1.5"),
+                           build.scene_properties(cfg, ds), None, Segment(0, 1000))

@@ -22,6 +22,7 @@ from __future__ import annotations
 import importlib
 import json
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -160,6 +161,28 @@ def build_loss(loss_cfg: DictConfig, props: SceneProperties) -> LossConfig:
                        eps=props.tonemap_eps, theta=props.threshold)
 
 
+def lr_end_factor(cfg: DictConfig) -> float:
+    """``trainer.lr_end_factor``: the lr at a segment's last step over its first (1 = a
+    constant lr, the authors'); an :class:`InputError` unless it lies in ``(0, 1]``.
+
+    >>> lr_end_factor(OmegaConf.create({"trainer": {}}))
+    1.0
+    >>> try:
+    ...     lr_end_factor(OmegaConf.create({"trainer": {"lr_end_factor": 0}}))
+    ... except InputError as e:
+    ...     print(e.field)
+    trainer.lr_end_factor
+    """
+    value = cfg.trainer.get("lr_end_factor", 1.0)
+    try:
+        f = float(value)
+    except (TypeError, ValueError):
+        f = math.nan
+    if not 0.0 < f <= 1.0:
+        raise InputError("config", "trainer.lr_end_factor", "a number in (0, 1]", value)
+    return f
+
+
 def build_module(cfg: DictConfig, props: SceneProperties, train: SplitData | None,
                  seg: Segment, k: int = 0, device: str | torch.device = "cpu"
                  ) -> EventNeRFModule:
@@ -180,7 +203,8 @@ def build_module(cfg: DictConfig, props: SceneProperties, train: SplitData | Non
                       betas=tuple(float(b) for b in optim.get("betas", (0.9, 0.999))),
                       eps=float(optim.get("eps", 1e-8)),
                       max_nonfinite=cfg.trainer.max_nonfinite, log_every=cfg.trainer.log_every,
-                      seed=cfg.seed + 1000 * k)
+                      seed=cfg.seed + 1000 * k, max_steps=int(cfg.trainer.max_steps),
+                      lr_end_factor=lr_end_factor(cfg))
     renderer = build_renderer(cfg.render, props)
     field.set_scene_box(*renderer.cylinder.box())
     return EventNeRFModule(field, renderer, batcher, build_loss(cfg.loss, props), step)

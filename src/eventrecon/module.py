@@ -65,6 +65,23 @@ class StepConfig:
     max_nonfinite: int = 20
     log_every: int = 25
     seed: int = 0
+    max_steps: int = 1
+    lr_end_factor: float = 1.0
+
+
+def lr_factor(step: int, max_steps: int, end_factor: float) -> float:
+    r"""The learning-rate multiplier at ``step`` of a segment of ``max_steps`` steps,
+    :math:`f^{\,\min(s, S)/S}`: 1 at the first step, ``end_factor`` at the last
+    (exponential decay; ``end_factor = 1`` keeps the lr constant, as the authors do).
+
+    >>> [round(lr_factor(s, 100, 0.1), 4) for s in (0, 50, 100)]
+    [1.0, 0.3162, 0.1]
+    >>> lr_factor(7, 100, 1.0)
+    1.0
+    """
+    if end_factor == 1.0 or max_steps <= 0:
+        return 1.0
+    return float(end_factor ** (min(step, max_steps) / max_steps))
 
 
 def step_generator(seed: int, step: int, stream: int = 0) -> torch.Generator:
@@ -113,10 +130,25 @@ class EventNeRFModule(L.LightningModule):
 
     # ------------------------------------------------------------------ optimiser
     def configure_optimizers(self) -> torch.optim.Optimizer:
-        """AdamW over the field's parameter groups (re-run by growth schedules); constant lr."""
+        """AdamW over the field's parameter groups (re-run by growth schedules). Each group
+        keeps its own lr as ``base_lr``; :meth:`training_step` scales it by
+        :func:`lr_factor` (constant unless ``trainer.lr_end_factor < 1``)."""
         cfg = self.step_cfg
-        return torch.optim.AdamW(self.field.param_groups(cfg.lr), lr=cfg.lr,
+        groups = self.field.param_groups(cfg.lr)
+        for g in groups:
+            g["base_lr"] = float(g.get("lr", cfg.lr))
+        return torch.optim.AdamW(groups, lr=cfg.lr,
                                  weight_decay=cfg.weight_decay, betas=cfg.betas, eps=cfg.eps)
+
+    def _set_lr(self, step: int) -> None:
+        """Every group's lr = its ``base_lr`` × :func:`lr_factor` at ``step``."""
+        cfg = self.step_cfg
+        if cfg.lr_end_factor == 1.0:
+            return
+        f = lr_factor(step, cfg.max_steps, cfg.lr_end_factor)
+        for opt in self.trainer.optimizers:
+            for g in opt.param_groups:
+                g["lr"] = g.get("base_lr", g["lr"]) * f
 
     # ------------------------------------------------------------------ training
     def render_three(self, batch: dict[str, Tensor], gen: torch.Generator | None,
@@ -141,6 +173,7 @@ class EventNeRFModule(L.LightningModule):
         step = int(self.global_step)
         gen = step_generator(self.step_cfg.seed, step, stream=int(self.global_rank))
         batch = self.batcher.sample(self.step_cfg.n_rays, gen)
+        self._set_lr(step)
         n_rays = int(batch["rays_o"].shape[0])
         self.last_window = self.batcher.last_window  # Python floats: no device sync
         levels = self.render_three(batch, gen)

@@ -72,7 +72,8 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
             "experiment": cfg.get("sweep_name"), "tag": cfg.get("tag"), "seed": cfg.get("seed"),
             # what the run changed from the paper's method (the tables footnote it)
             "schedule": cfg.trainer.get("schedule"), "skip": cfg.render.get("skip"),
-            "sizing": _sizing_choice()}
+            "sizing": _sizing_choice(),
+            "lr_end_factor": float(cfg.trainer.get("lr_end_factor", 1.0))}
 
 
 def _sizing_choice() -> str | None:

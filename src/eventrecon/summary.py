@@ -52,7 +52,9 @@ def format_summary(metrics: Mapping[str, Any], out_dir: str | Path) -> str:
     mem = metrics.get("peak_mem_mb")
     changed = ["schedules compressed" if metrics.get("schedule") == "compressed" else "",
                f"size conf/sizing/{metrics['sizing']}.yaml" if metrics.get("sizing") else "",
-               "empty-space skipping" if metrics.get("skip") == "grid" else ""]
+               "empty-space skipping" if metrics.get("skip") == "grid" else "",
+               f"lr decayed to {metrics['lr_end_factor']:g}× by the last step"
+               if metrics.get("lr_end_factor") not in (None, 1.0) else ""]
     changed = [c for c in changed if c]
     subject = metrics.get("psnr_subject")
     rows = [

@@ -12,7 +12,14 @@ rule, decay ``γ``), with ``σ = 0`` outside the cylinder. A cell starts *unaske
 counts as occupied (nothing is skipped before the field has been asked about it) until
 its first update, which sets ``D`` to the sampled density. A cell is *occupied* when it
 or one of its neighbours (the 3×3×3 cells around it, in its own and the two adjacent
-time bins) has ``D > threshold``: one jittered point per cell and update can miss the
+time bins) has ``D > τ``, with the effective threshold
+
+.. math:: τ = \\min\\big(\\text{threshold},\\ \\overline{D}\\big),
+
+:math:`\\overline{D}` being the mean over the asked cells (nerfacc's rule): while the
+field is still a thin fog everywhere, its denser half stays occupied instead of the whole
+grid going empty, which would lock the field out of space it has not learnt yet.
+The dilation is there because one jittered point per cell and update can miss the
 peak of a feature that spans a few cells, and the dilation keeps its surroundings. The
 renderer evaluates the field only at samples in occupied cells
 (:meth:`OccupancyGrid.occupied`); a sample whose density is below the threshold adds at
@@ -106,10 +113,23 @@ class OccupancyGrid(nn.Module):
         """``[B, G, G, G]`` bool: occupied (dilated) or not yet asked."""
         return self.occ
 
+    def effective_threshold(self) -> Tensor:
+        """Scalar ``τ = min(threshold, mean density of the asked cells)`` (``threshold``
+        while no cell has been asked)."""
+        thr = torch.tensor(self.threshold, device=self.density.device)
+        n = self.asked.sum()
+        if int(n) == 0:
+            return thr
+        return torch.minimum(thr, (self.density * self.asked).sum() / n)
+
+    def _dense(self) -> Tensor:
+        """``[B, G, G, G]`` bool: above the effective threshold, or unasked (undilated)."""
+        return (self.density > self.effective_threshold()) | ~self.asked
+
     def refresh(self) -> None:
-        """Recompute :attr:`occupancy` from the densities: above the threshold or unasked,
-        dilated by one cell in space and one bin in time."""
-        core = ((self.density > self.threshold) | ~self.asked).float()
+        """Recompute :attr:`occupancy` from the densities: above the effective threshold or
+        unasked, dilated by one cell in space and one bin in time."""
+        core = self._dense().float()
         core = F.max_pool3d(core[:, None], 3, stride=1, padding=1)[:, 0]
         if self.time_bins > 1:
             core = torch.maximum(core, torch.cat([core[1:], core[-1:]]))
@@ -140,7 +160,7 @@ class OccupancyGrid(nn.Module):
     def update(self, density: DensityFn, gen: torch.Generator) -> int:
         """Ask the field about the unasked, the occupied and a random share of the empty
         cells (one jittered point each); returns the number of cells asked."""
-        flat_occ = ((self.density > self.threshold) | ~self.asked).reshape(-1)
+        flat_occ = self._dense().reshape(-1)
         n = flat_occ.numel()
         pick = torch.rand(n, generator=gen, device=gen.device).to(flat_occ.device)
         cells = (flat_occ | (pick < self.fraction)).nonzero().squeeze(1)

@@ -99,6 +99,13 @@ def method_notes(runs: Sequence[Run]) -> list[str]:
     if "grid" in skips:
         notes.append("Samples in cells the occupancy grid marks empty are not evaluated "
                      "(render.skip=grid; see docs/results for its agreement with skip=none).")
+    decays = sorted({float(r.record["lr_end_factor"]) for r in runs
+                     if r.record.get("lr_end_factor") not in (None, 1.0)})
+    if decays:
+        notes.append("Learning rate decayed exponentially to "
+                     + ", ".join(f"{d:g}×" for d in decays)
+                     + " of its start by the last step (trainer.lr_end_factor; the authors "
+                       "keep it constant).")
     steps = sorted({int(r.record["max_steps"]) for r in runs if r.record.get("max_steps")})
     if steps:
         notes.append(f"Training steps per segment: {', '.join(map(str, steps))} "
