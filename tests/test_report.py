@@ -293,3 +293,30 @@ def test_cli_default_out_is_git_ignored_and_leaves_docs_results_alone(tmp_path, 
     ignored = subprocess.run([git, "-C", str(repo), "check-ignore", "--no-index", *written],
                              capture_output=True, text=True, check=False).stdout.split()
     assert sorted(ignored) == sorted(written)
+
+
+def test_findings_decide_decay_per_scene_and_full_model_on_the_real_scene(tmp_path):
+    from eventrecon.report.findings import check_findings
+
+    jobs = []
+    for seed, (d_low, d_noisy) in enumerate([(0.001, 0.020), (-0.001, 0.022), (0.0, 0.018)]):
+        for scene, d in (("rig_lowlight", d_low), ("rig_noisy", d_noisy)):
+            jobs += [_metrics(scene, psnr=30.0, ssim=0.80 + d, lpips=None, seed=seed,
+                              experiment="table4"),
+                     _metrics(scene, loss="no_decay", psnr=30.0, ssim=0.80, lpips=None,
+                              seed=seed, experiment="table4")]
+        # a row better than the full model, but only on the noisy variant: it must not
+        # decide the full-model claim, which is about the real-like scene
+        jobs.append(_metrics("rig_noisy", loss="no_event", psnr=30.0, ssim=0.95, lpips=None,
+                             seed=seed, experiment="table4"))
+    runs = collect_runs([_sweep(tmp_path, jobs).parent.parent])
+    found = {f.claim: f for f in check_findings(runs)}
+    low = found["Event decay improves SSIM/LPIPS on noisy real-like data (Tab. 4, `rig_lowlight`)"]
+    noisy = found["Event decay improves SSIM/LPIPS on noisy real-like data (Tab. 4, `rig_noisy`)"]
+    assert low.verdict == "inconclusive" and low.diff.n == 3
+    assert low.diff.mean == pytest.approx(0.0, abs=1e-12)
+    assert noisy.verdict == "holds" and noisy.diff.n == 3
+    assert noisy.diff.mean == pytest.approx(0.020) and noisy.diff.low > 0
+    assert "LPIPS unavailable" in noisy.note
+    full = found["SSIM favours the full model on the real-like scene (Tab. 4)"]
+    assert full.verdict == "inconclusive" and "w/o decay" in full.cells
