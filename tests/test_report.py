@@ -320,3 +320,26 @@ def test_findings_decide_decay_per_scene_and_full_model_on_the_real_scene(tmp_pa
     assert "LPIPS unavailable" in noisy.note
     full = found["SSIM favours the full model on the real-like scene (Tab. 4)"]
     assert full.verdict == "inconclusive" and "w/o decay" in full.cells
+
+
+def test_row_differences_pair_the_full_model_with_each_tab3_row(tmp_path):
+    from eventrecon.report.findings import row_differences, row_differences_markdown
+
+    jobs = []
+    for seed in range(3):
+        for scene, offset in (("spheres", 0.0), ("static_lego", 1.0)):
+            jobs += [_metrics(scene, psnr=25.0 + offset, seed=seed, experiment="table3"),
+                     _metrics(scene, model="ngp", psnr=25.0 + offset - 0.1 * (seed + 1),
+                              seed=seed, experiment="table3"),
+                     _metrics(scene, loss="no_acc", psnr=22.0, seed=seed, experiment="table3",
+                              status="collapsed" if seed == 0 else "ok")]
+    diffs = {d.row: d for d in row_differences(collect_runs([_sweep(tmp_path, jobs).parent.parent]))}
+    ngp, no_acc = diffs["NGP"], diffs["w/o L_acc"]
+    # NGP: 0.1, 0.2, 0.3 below the full model on both scenes
+    assert ngp.all_scenes.n == 6 and ngp.all_scenes.mean == pytest.approx(0.2)
+    assert ngp.moving.n == 3 and ngp.moving.mean == pytest.approx(0.2) and ngp.lost == 0
+    # w/o L_acc: seed 0 collapsed on both scenes, its pairs dropped; 3 dB (spheres), 4 dB
+    assert no_acc.lost == 2 and no_acc.all_scenes.n == 4
+    assert no_acc.all_scenes.mean == pytest.approx(3.5) and no_acc.moving.mean == pytest.approx(3.0)
+    md = row_differences_markdown(list(diffs.values()))
+    assert "| NGP | **0.20 ± " in md and "| w/o L_acc | **3.50 ± " in md

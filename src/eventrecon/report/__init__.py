@@ -18,7 +18,12 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from eventrecon.report.curves import DEFAULT_LEVELS, write_accuracy_vs_time
-from eventrecon.report.findings import check_findings, findings_markdown
+from eventrecon.report.findings import (
+    check_findings,
+    findings_markdown,
+    row_differences,
+    row_differences_markdown,
+)
 from eventrecon.report.paper import PAPER_TABLES
 from eventrecon.report.runs import Run, collect_runs, read_curve, read_run, write_run
 from eventrecon.report.tables import REAL_SCENE, build_table, to_latex, to_markdown, write_tables
@@ -55,5 +60,7 @@ def build_report(
     paths = write_tables(runs, out, tables, real_scene=real_scene)
     paths += write_accuracy_vs_time(runs, out, levels, curves_experiment)
     findings = Path(out) / "findings.md"
-    findings.write_text(findings_markdown(check_findings(runs)))
+    differences = row_differences_markdown(row_differences(runs))
+    findings.write_text(findings_markdown(check_findings(runs))
+                        + (f"\n{differences}" if differences else ""))
     return [*paths, findings]

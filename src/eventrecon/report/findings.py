@@ -35,7 +35,8 @@ from eventrecon.report.runs import Run
 from eventrecon.report.stats import MeanCI, mean_ci
 from eventrecon.report.tables import REAL_SCENE
 
-__all__ = ["Finding", "check_findings", "findings_markdown"]
+__all__ = ["Finding", "check_findings", "findings_markdown", "RowDifference",
+           "row_differences", "row_differences_markdown"]
 
 #: ± dB within which a difference "barely matters" (claim 6).
 FPS_TOLERANCE_DB = 0.5
@@ -205,6 +206,51 @@ def _decay_findings(t4: Sequence[Run]) -> list[Finding]:
         out.append(Finding(f"{claim}, `{scene}`)", v, d_ssim, "SSIM", "`Full` − `w/o decay`",
                            "; ".join(x for x in (note, _lost(lost)) if x)))
     return out
+
+
+@dataclass
+class RowDifference:
+    """``Full − row`` in PSNR over all Tab. 3 scenes and over the scenes with motion."""
+
+    row: str
+    all_scenes: MeanCI | None
+    moving: MeanCI | None
+    lost: int
+
+
+def row_differences(runs: Sequence[Run], table: str = "table3",
+                    full: str = "Full Model") -> list[RowDifference]:
+    """The full row against every other row of ``table``, paired over (scene, seed) —
+    the evidence behind claim 1, one line per row, the closest rows first."""
+    t = _in(table, runs)
+    moving = [r for r in t if "static" not in r.scene]
+    labels = sorted({lab for r in t if (lab := method_row(r, table)) and lab != full})
+    out = []
+    for lab in labels:
+        d_all, lost = paired(t, _row(table, full), _row(table, lab))
+        d_mov, _ = paired(moving, _row(table, full), _row(table, lab))
+        out.append(RowDifference(lab, d_all, d_mov, lost))
+    return sorted(out, key=lambda x: x.all_scenes.mean if x.all_scenes else float("inf"))
+
+
+def row_differences_markdown(diffs: Sequence[RowDifference]) -> str:
+    """:func:`row_differences` as a Markdown section ("" without runs)."""
+    def cell(d: MeanCI | None) -> list[str]:
+        if d is None:
+            return ["—", "0"]
+        text = f"{fmt(d.mean, 2)} ± {fmt(d.half, 2)}" if d.half else fmt(d.mean, 2)
+        if d.half and (d.low > 0 or d.high < 0):
+            text = f"**{text}**"
+        return [text, str(d.n)]
+
+    if not diffs:
+        return ""
+    rows = [[d.row, *cell(d.all_scenes), *cell(d.moving), str(d.lost)] for d in diffs]
+    header = ["row", "Full − row, all scenes (dB)", "n", "Full − row, scenes with motion (dB)",
+              "n", "runs not scored"]
+    return ("## Tab. 3: the full model against each row\n\n" + markdown_table(header, rows)
+            + "\n\n- PSNR, paired over (scene, seed), mean ± 95 % interval; bold: the interval "
+              "excludes zero. Runs not scored (collapsed or failed) drop their pairs.\n")
 
 
 def _gain(r: Run) -> float | None:
