@@ -333,7 +333,8 @@ def test_row_differences_pair_the_full_model_with_each_tab3_row(tmp_path):
                               seed=seed, experiment="table3"),
                      _metrics(scene, loss="no_acc", psnr=22.0, seed=seed, experiment="table3",
                               status="collapsed" if seed == 0 else "ok")]
-    diffs = {d.row: d for d in row_differences(collect_runs([_sweep(tmp_path, jobs).parent.parent]))}
+    runs = collect_runs([_sweep(tmp_path, jobs).parent.parent])
+    diffs = {d.row: d for d in row_differences(runs)}
     ngp, no_acc = diffs["NGP"], diffs["w/o L_acc"]
     # NGP: 0.1, 0.2, 0.3 below the full model on both scenes
     assert ngp.all_scenes.n == 6 and ngp.all_scenes.mean == pytest.approx(0.2)
