@@ -71,7 +71,7 @@ class StepConfig:
 
 def lr_factor(step: int, max_steps: int, end_factor: float) -> float:
     r"""The learning-rate multiplier at ``step`` of a segment of ``max_steps`` steps,
-    :math:`f^{\,\min(s, S)/S}`: 1 at the first step, ``end_factor`` at the last
+    :math:`f^{\,\min(s, S)/S}`: 1 at step 0, reaching ``end_factor`` at step ``S``
     (exponential decay; ``end_factor = 1`` keeps the lr constant, as the authors do).
 
     >>> [round(lr_factor(s, 100, 0.1), 4) for s in (0, 50, 100)]
