@@ -150,3 +150,18 @@ def test_davis_size_is_one_override_for_every_scene():
         cfg = _compose(f"scene={scene}", "resolution=davis346")
         assert (cfg.scene.width, cfg.scene.height) == (346, 260), scene
         assert cfg.scene.name == scene
+
+
+def test_rig_noisy_is_rig_lowlight_with_ten_times_the_shot_noise():
+    # rig_noisy restates rig_lowlight's event effects (Hydra replaces lists): they must stay
+    # identical except the shot-noise rate, or the decay comparison would test two changes
+    low = OmegaConf.to_container(_compose("scene=rig_lowlight").scene)
+    noisy = OmegaConf.to_container(_compose("scene=rig_noisy").scene)
+    rates = [[e["rate_hz"] for e in s["events"] if e["name"] == "shot_noise"]
+             for s in (low, noisy)]
+    assert rates == [[0.5], [5.0]]
+    for s in (low, noisy):
+        s.pop("name")
+        for e in s["events"]:
+            e.pop("rate_hz", None)
+    assert noisy == low

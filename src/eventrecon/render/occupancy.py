@@ -118,9 +118,8 @@ class OccupancyGrid(nn.Module):
         while no cell has been asked)."""
         thr = torch.tensor(self.threshold, device=self.density.device)
         n = self.asked.sum()
-        if int(n) == 0:
-            return thr
-        return torch.minimum(thr, (self.density * self.asked).sum() / n)
+        mean = (self.density * self.asked).sum() / n.clamp_min(1)
+        return torch.where(n > 0, torch.minimum(thr, mean), thr)  # no host sync
 
     def _dense(self) -> Tensor:
         """``[B, G, G, G]`` bool: above the effective threshold, or unasked (undilated)."""

@@ -102,18 +102,27 @@ def _fps(f: float | None) -> Callable[[Run], bool]:
     return lambda r: r.loss == "full" and r.fps == f
 
 
+def _moving(runs: Sequence[Run]) -> list[Run]:
+    """The runs on scenes with motion (every scene but the static control)."""
+    return [r for r in runs if "static" not in r.scene]
+
+
+def _against_each(runs: Sequence[Run], table: str, full: str, metric: str = "psnr"
+                  ) -> list[tuple[str, MeanCI | None, int]]:
+    """``(row, full − row, runs not scored)`` for every other row of ``table`` in ``runs``,
+    paired over (scene, seed) (:func:`paired`)."""
+    labels = sorted({lab for r in runs if (lab := method_row(r, table)) and lab != full})
+    return [(lab, *paired(runs, _row(table, full), _row(table, lab), metric))
+            for lab in labels]
+
+
 def _full_vs_each(runs: Sequence[Run], table: str, full: str, metric: str, sign: int
                   ) -> tuple[str, MeanCI | None, str, int]:
     """The full row against every other row: holds if better than each, fails if some row
     is better; the evidence shown is the closest competitor."""
-    rows = sorted({lab for r in runs if (lab := method_row(r, table)) and lab != full})
-    results = []
-    lost = 0
-    for lab in rows:
-        d, n_lost = paired(runs, _row(table, full), _row(table, lab), metric)
-        lost += n_lost
-        if d is not None:
-            results.append((lab, d))
+    each = _against_each(runs, table, full, metric)
+    lost = sum(n_lost for _, _, n_lost in each)
+    results = [(lab, d) for lab, d, _ in each if d is not None]
     if not results:
         return "untested", None, "", lost
     verdicts = [_verdict(d, sign) for _, d in results]
@@ -132,8 +141,7 @@ def check_findings(runs: Sequence[Run]) -> list[Finding]:
     out.append(Finding("Full model best on average (Tab. 3)", v, d, "PSNR", cells,
                        _lost(lost)))
 
-    moving = [r for r in t3 if "static" not in r.scene]
-    d, lost = paired(moving, _row("table3", "Full Model"), _row("table3", "w/o L_event"))
+    d, lost = paired(_moving(t3), _row("table3", "Full Model"), _row("table3", "w/o L_event"))
     out.append(Finding("Removing L_event hurts on scenes with events (Tab. 3)", _verdict(d), d,
                        "PSNR", "`Full Model` − `w/o L_event`, scenes with motion", _lost(lost)))
 
@@ -223,13 +231,9 @@ def row_differences(runs: Sequence[Run], table: str = "table3",
     """The full row against every other row of ``table``, paired over (scene, seed) —
     the evidence behind claim 1, one line per row, the closest rows first."""
     t = _in(table, runs)
-    moving = [r for r in t if "static" not in r.scene]
-    labels = sorted({lab for r in t if (lab := method_row(r, table)) and lab != full})
-    out = []
-    for lab in labels:
-        d_all, lost = paired(t, _row(table, full), _row(table, lab))
-        d_mov, _ = paired(moving, _row(table, full), _row(table, lab))
-        out.append(RowDifference(lab, d_all, d_mov, lost))
+    moving = {lab: d for lab, d, _ in _against_each(_moving(t), table, full)}
+    out = [RowDifference(lab, d, moving.get(lab), lost)
+           for lab, d, lost in _against_each(t, table, full)]
     return sorted(out, key=lambda x: x.all_scenes.mean if x.all_scenes else float("inf"))
 
 
