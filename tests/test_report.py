@@ -344,3 +344,39 @@ def test_row_differences_pair_the_full_model_with_each_tab3_row(tmp_path):
     assert no_acc.all_scenes.mean == pytest.approx(3.5) and no_acc.moving.mean == pytest.approx(3.0)
     md = row_differences_markdown(list(diffs.values()))
     assert "| NGP | **0.20 ± " in md and "| w/o L_acc | **3.50 ± " in md
+
+
+def test_collapsed_cells_set_each_collapse_beside_the_papers_own_cell(tmp_path):
+    from eventrecon.report.findings import collapsed_cells, collapsed_cells_markdown
+
+    jobs = []
+    for seed in range(3):
+        # only L_event on the static control: the paper's cell (16.50) is 7.36 dB below its
+        # column's best (the full model, 23.863) — the paper fails there too
+        jobs.append(_metrics("static_lego", loss="only_event", seed=seed, experiment="table3",
+                             status="collapsed" if seed < 2 else "ok"))
+        # w/o L_acc on lego: the paper's cell (23.178) is its column's best but 0.0 below
+        jobs.append(_metrics("lego", loss="no_acc", seed=seed, experiment="table3",
+                             status="collapsed" if seed == 1 else "ok"))
+        jobs.append(_metrics("lego", seed=seed, experiment="table3"))  # nothing collapsed
+        # Tab. 5 rows are frame rates
+        jobs.append(_metrics("rig_lowlight", fps=0.5, seed=seed, experiment="table5",
+                             status="collapsed" if seed == 2 else "ok"))
+    cells = {(c.table, c.row, c.scene): c
+             for c in collapsed_cells(collect_runs([_sweep(tmp_path, jobs).parent.parent]))}
+    assert set(cells) == {("table3", "only L_event", "static_lego"),
+                          ("table3", "w/o L_acc", "lego"), ("table5", "0.5", "rig_lowlight")}
+    static = cells[("table3", "only L_event", "static_lego")]
+    assert static.collapsed_seeds == [0, 1] and static.runs == 3
+    assert static.paper_psnr == pytest.approx(16.500)
+    assert static.paper_gap == pytest.approx(23.863 - 16.500) and static.paper_fails is True
+    lego = cells[("table3", "w/o L_acc", "lego")]
+    assert lego.collapsed_seeds == [1] and lego.paper_gap == pytest.approx(0.0)
+    assert lego.paper_fails is False
+    fps = cells[("table5", "0.5", "rig_lowlight")]
+    best5 = max(v[0] for (_, col), v in PAPER_TABLES["table5"].values.items() if col == "Sword")
+    assert fps.paper_gap == pytest.approx(best5 - PAPER_TABLES["table5"].value("0.5", "Sword")[0])
+    md = collapsed_cells_markdown(list(cells.values()))
+    assert "| table3 | w/o L_acc | `lego` | 1/3 | 1 | 23.18 | 0.00 | **no** |" in md
+    assert "| table3 | only L_event | `static_lego` | 2/3 | 0, 1 | 16.50 | 7.36 | yes |" in md
+    assert collapsed_cells_markdown([]) == ""

@@ -20,6 +20,8 @@ from pathlib import Path
 from eventrecon.report.curves import DEFAULT_LEVELS, write_accuracy_vs_time
 from eventrecon.report.findings import (
     check_findings,
+    collapsed_cells,
+    collapsed_cells_markdown,
     findings_markdown,
     row_differences,
     row_differences_markdown,
@@ -60,7 +62,8 @@ def build_report(
     paths = write_tables(runs, out, tables, real_scene=real_scene)
     paths += write_accuracy_vs_time(runs, out, levels, curves_experiment)
     findings = Path(out) / "findings.md"
-    differences = row_differences_markdown(row_differences(runs))
-    findings.write_text(findings_markdown(check_findings(runs))
-                        + (f"\n{differences}" if differences else ""))
+    sections = [row_differences_markdown(row_differences(runs)),
+                collapsed_cells_markdown(collapsed_cells(runs))]
+    findings.write_text("\n".join([findings_markdown(check_findings(runs)),
+                                   *(s for s in sections if s)]))
     return [*paths, findings]
