@@ -412,4 +412,8 @@ def test_padded_field_queries_give_the_same_values_and_gradients() -> None:
     (s0, c0, g0), (s8, c8, g8) = grads
     assert torch.allclose(s0, s8, atol=1e-6) and torch.allclose(c0, c8, atol=1e-6)
     assert len(g0) == len(g8) > 0
-    assert all(torch.allclose(a, b, rtol=1e-5, atol=1e-6) for a, b in zip(g0, g8))
+    # the same sums over 1000 vs 1024 rows (24 of them cut off) round differently in fp32,
+    # by the CPU's blocking: up to ~1e-7 of the largest entry (3e-5 of 183 on one Xeon);
+    # the 24 repeated rows, if they leaked in, would move the gradients by ~2 % of it
+    assert all(torch.allclose(a, b, rtol=1e-5, atol=1e-5 * float(a.abs().max()))
+               for a, b in zip(g0, g8))
