@@ -303,14 +303,13 @@ def collapsed_cells(runs: Sequence[Run]) -> list[CollapsedCell]:
     """Every (table, row, scene) cell of Tab. 3–7 with at least one collapsed run, with the
     paper's PSNR for the cell and its gap to the best of the paper's column — the check of
     "no cell collapses unless the paper's own cell does"."""
-    cells: dict[tuple[str, str, str], list[Run]] = {}
-    for r in runs:
+    cells: dict[tuple[str, str, str], dict[int, Run]] = {}
+    for r in sorted(runs, key=lambda r: r.mtime):  # a re-run of a seed replaces it
         if r.experiment in ROW_OF and (row := ROW_OF[r.experiment](r, r.experiment)):
-            cells.setdefault((r.experiment, row, r.scene), []).append(r)
+            cells.setdefault((r.experiment, row, r.scene), {})[int(r.record.get("seed") or 0)] = r
     out = []
     for (table, row, scene), members in sorted(cells.items()):
-        seeds = sorted(int(r.record.get("seed") or 0) for r in members
-                       if r.status == "collapsed")
+        seeds = sorted(seed for seed, r in members.items() if r.status == "collapsed")
         if not seeds:
             continue
         paper, column = PAPER_TABLES[table], _paper_column(table, scene)
