@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import struct
 from pathlib import Path
@@ -362,8 +363,16 @@ def test_collapsed_cells_set_each_collapse_beside_the_papers_own_cell(tmp_path):
         # Tab. 5 rows are frame rates
         jobs.append(_metrics("rig_lowlight", fps=0.5, seed=seed, experiment="table5",
                              status="collapsed" if seed == 2 else "ok"))
-    cells = {(c.table, c.row, c.scene): c
-             for c in collapsed_cells(collect_runs([_sweep(tmp_path, jobs).parent.parent]))}
+    runs = collect_runs([_sweep(tmp_path, jobs).parent.parent])
+    # a later re-run of a seed replaces it: Tab. 5 seed 2, re-run and scored, is no collapse
+    rerun = write_run(tmp_path / "rerun" / "0", _metrics("rig_lowlight", fps=0.5, seed=2,
+                                                          experiment="table5"))
+    newer = max(r.mtime for r in runs) + 10
+    os.utime(rerun / "metrics.json", (newer, newer))
+    rerun_runs = runs + collect_runs([tmp_path / "rerun"])
+    assert ("table5", "0.5", "rig_lowlight") not in {(c.table, c.row, c.scene)
+                                                       for c in collapsed_cells(rerun_runs)}
+    cells = {(c.table, c.row, c.scene): c for c in collapsed_cells(runs)}
     assert set(cells) == {("table3", "only L_event", "static_lego"),
                           ("table3", "w/o L_acc", "lego"), ("table5", "0.5", "rig_lowlight")}
     static = cells[("table3", "only L_event", "static_lego")]

@@ -291,12 +291,9 @@ class CollapsedCell:
 
 
 def _paper_column(table: str, scene: str) -> str | None:
-    """The paper's column a scene of ours stands for: Tab. 3 by :data:`SCENE_TO_PAPER`,
-    the one-column tables (Tab. 4–7) by their only column."""
-    columns = PAPER_TABLES[table].columns
-    if table == "table3":
-        return SCENE_TO_PAPER.get(scene)
-    return columns[0] if len(columns) == 1 else None
+    """The paper's column a scene of ours stands for, as :func:`.tables.build_table` pairs
+    them: Tab. 3 by :data:`SCENE_TO_PAPER`, Tab. 4–7 by their one column."""
+    return SCENE_TO_PAPER.get(scene) if table == "table3" else PAPER_TABLES[table].columns[0]
 
 
 def collapsed_cells(runs: Sequence[Run]) -> list[CollapsedCell]:
