@@ -154,14 +154,15 @@ class EventNeRFModule(L.LightningModule):
     def render_three(self, batch: dict[str, Tensor], gen: torch.Generator | None,
                      perturb: bool = True) -> list[dict[str, Tensor]]:
         """Render each ray at ``t0, t1, t_ref``; per level a dict of ``[N, ...]`` outputs
-        with keys ``rgb_t0, rgb_t1, rgb_ref, opacity_t0, opacity_t1, opacity_ref``."""
+        with keys ``rgb_t0, rgb_t1, rgb_ref, opacity_t0, opacity_t1, opacity_ref``.
+        The three renders of a ray share their coarse samples (``copies=3``)."""
         n = batch["rays_o"].shape[0]
         o = batch["rays_o"].repeat(3, 1)
         d = batch["rays_d"].repeat(3, 1)
         t = torch.cat([batch["t0"], batch["t1"], batch["t_ref"]], 0)
         bg = batch["bg"].repeat(3, 1)
         self.renderer.field_inputs = 0
-        levels = self.renderer(self.field, o, d, t, bg, perturb=perturb, gen=gen)
+        levels = self.renderer(self.field, o, d, t, bg, perturb=perturb, gen=gen, copies=3)
         out = []
         for lv in levels:
             rgb, opa = lv["rgb"].split(n), lv["opacity"].split(n)

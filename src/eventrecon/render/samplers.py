@@ -14,6 +14,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from eventrecon.errors import InputError
+
 __all__ = ["stratified", "sample_pdf", "interval_edges"]
 
 
@@ -31,7 +33,8 @@ def uniform(shape: tuple[int, ...], gen: torch.Generator | None, like: Tensor) -
 
 
 def stratified(
-    near: Tensor, far: Tensor, n: int, perturb: bool, gen: torch.Generator | None = None
+    near: Tensor, far: Tensor, n: int, perturb: bool, gen: torch.Generator | None = None,
+    copies: int = 1,
 ) -> Tensor:
     """One sample in each of ``n`` equal bins of ``[near, far]``.
 
@@ -43,18 +46,28 @@ def stratified(
         n: samples per ray.
         perturb: jitter within each bin (training) or take bin centres (evaluation).
         gen: optional generator for the jitter.
+        copies: the ``N`` rays are ``copies`` stacked blocks of the same ``N / copies``
+            rays (one ray rendered at several times); every block gets the same jitter
+            ``u``, so a copy's samples are its first block's (the authors' code draws the
+            coarse depths once per ray for its ``t0``, ``t1`` and ``t_ref`` renders).
 
     Returns:
         ``[N, n]`` sorted distances.
 
     >>> stratified(torch.tensor([0.0]), torch.tensor([1.0]), 4, perturb=False)
     tensor([[0.1250, 0.3750, 0.6250, 0.8750]])
+    >>> s = stratified(torch.zeros(4), torch.ones(4), 3, True, torch.Generator().manual_seed(0), copies=2)
+    >>> bool((s[:2] == s[2:]).all())
+    True
     """
-    shape = (near.shape[0], n)
+    if copies < 1 or near.shape[0] % copies:
+        raise InputError("sampler", "copies", f"a divisor of the ray count {near.shape[0]}",
+                         copies)
+    shape = (near.shape[0] // copies, n)
     if perturb:
-        u = uniform(shape, gen, near)
+        u = uniform(shape, gen, near).repeat(copies, 1)
     else:
-        u = torch.full(shape, 0.5, device=near.device, dtype=near.dtype)
+        u = torch.full((near.shape[0], n), 0.5, device=near.device, dtype=near.dtype)
     i = torch.arange(n, device=near.device, dtype=near.dtype)
     return near[:, None] + (far - near)[:, None] * ((i + u) / n)
 

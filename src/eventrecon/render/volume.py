@@ -254,10 +254,10 @@ class Renderer(nn.Module):
         return torch.cat(sig_parts, 1), torch.cat(rgb_parts, 1)
 
     def _render_hit(self, field: Field, o: Tensor, d: Tensor, t: Tensor, bg: Tensor,
-                    near: Tensor, far: Tensor, perturb: bool, gen: torch.Generator | None
-                    ) -> list[dict[str, Tensor]]:
+                    near: Tensor, far: Tensor, perturb: bool, gen: torch.Generator | None,
+                    copies: int = 1) -> list[dict[str, Tensor]]:
         """Both levels for rays that all hit the clipping volume."""
-        s_c = stratified(near, far, self.n_coarse, perturb, gen)
+        s_c = stratified(near, far, self.n_coarse, perturb, gen, copies)
         edges_c = interval_edges(s_c, near, far)
         skipping = self.skipping
         if skipping:
@@ -284,8 +284,8 @@ class Renderer(nn.Module):
         return levels
 
     def forward(self, field: Field, o: Tensor, d: Tensor, t: Tensor, bg: Tensor,
-                perturb: bool = False, gen: torch.Generator | None = None
-                ) -> list[dict[str, Tensor]]:
+                perturb: bool = False, gen: torch.Generator | None = None,
+                copies: int = 1) -> list[dict[str, Tensor]]:
         """Render rays at one time each.
 
         Args:
@@ -295,6 +295,12 @@ class Renderer(nn.Module):
             bg: ``[N, 3]`` background colours.
             perturb: stratified jitter and random importance draws (training).
             gen: optional generator on the rays' device.
+            copies: the rays are ``copies`` stacked blocks of the same rays (one ray at
+                several times, as in training: ``t0``, ``t1``, ``t_ref``). The coarse
+                samples are drawn once per ray and shared by its copies, as the
+                authors' code does; the fine samples are drawn from each copy's own
+                coarse weights. A static field then renders the copies identically at
+                the coarse level, so ``L_event`` sees no Monte Carlo noise there.
 
         Returns:
             one dict per level (coarse, then fine if ``n_fine > 0``) with ``rgb [N, 3]``,
@@ -310,9 +316,10 @@ class Renderer(nn.Module):
         near, far, hit = self.cylinder.ray_interval(o, d)
         idx = hit.nonzero().squeeze(1)
         if idx.numel() == n:
-            return self._render_hit(field, o, d, t, bg, near, far, perturb, gen)
+            return self._render_hit(field, o, d, t, bg, near, far, perturb, gen, copies)
+        # copies of a ray hit or miss together, so the hits keep the block structure
         sub = self._render_hit(field, o[idx], d[idx], t[idx], bg[idx], near[idx], far[idx],
-                               perturb, gen)
+                               perturb, gen, copies)
         out = []
         for level in sub:
             k = level["s"].shape[1]
