@@ -417,3 +417,39 @@ def test_padded_field_queries_give_the_same_values_and_gradients() -> None:
     # the 24 repeated rows, if they leaked in, would move the gradients by ~2 % of it
     assert all(torch.allclose(a, b, rtol=1e-5, atol=1e-5 * float(a.abs().max()))
                for a, b in zip(g0, g8))
+
+
+class _StaticBlob(Field):
+    """A time-independent Gaussian blob with a position-dependent colour."""
+
+    def forward(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
+        sigma = 8.0 * torch.exp(-((xyz - torch.tensor([0.0, -0.25, 0.0])) ** 2).sum(-1) / 0.05)
+        return sigma, torch.sigmoid(3.0 * xyz)
+
+
+def test_copies_of_a_ray_share_coarse_samples_and_draw_their_own_fine_ones() -> None:
+    # 16 rays, 4 of them missing the cylinder, each rendered at three times (t0, t1, t_ref)
+    offsets = torch.linspace(-0.1, 0.1, 12)
+    o = torch.stack([torch.full((12,), -2.0), -0.25 + offsets, offsets.flip(0)], -1)
+    d = torch.tensor([[1.0, 0.0, 0.0]]).expand(12, 3)
+    o = torch.cat([o, torch.tensor([[3.0, 3.0, 3.0]] * 4)])
+    d = torch.cat([d, torch.tensor([[1.0, 0.0, 0.0]] * 4)])
+    t = torch.rand(48, 1, generator=torch.Generator().manual_seed(1))
+    renderer = Renderer(n_coarse=16, n_fine=16)
+    coarse, fine = renderer(_StaticBlob(), o.repeat(3, 1), d.repeat(3, 1), t, torch.ones(48, 3),
+                            perturb=True, gen=torch.Generator().manual_seed(2), copies=3)
+    c = coarse["rgb"].reshape(3, 16, 3)
+    assert torch.equal(coarse["s"].reshape(3, 16, -1)[1], coarse["s"].reshape(3, 16, -1)[0])
+    # a static field renders every copy alike at the coarse level: no noise in L_event there
+    assert float((c[1] - c[0]).abs().max()) == 0.0 and float((c[2] - c[0]).abs().max()) == 0.0
+    assert float(coarse["opacity"][:12].min()) > 0.05   # the rays do cross the blob
+    # the fine samples are each copy's own draws from the shared coarse weights
+    f_s = fine["s"].reshape(3, 16, -1)[:, :12]
+    assert float((f_s[1] - f_s[0]).abs().max()) > 1e-3
+    # without copies each render draws its own coarse jitter
+    alone, _ = renderer(_StaticBlob(), o.repeat(3, 1), d.repeat(3, 1), t, torch.ones(48, 3),
+                        perturb=True, gen=torch.Generator().manual_seed(2))
+    a = alone["rgb"].reshape(3, 16, 3)
+    assert float((a[1] - a[0]).abs().max()) > 1e-4
+    with pytest.raises(InputError, match="copies"):
+        stratified(torch.zeros(5), torch.ones(5), 4, True, copies=3)
