@@ -63,11 +63,14 @@ def test_unasked_grid_skips_nothing_and_the_render_equals_the_dense_one():
     assert (a - b).abs().max().item() <= 2e-4  # only the transmittance stop differs
 
 
-def test_no_sample_above_the_threshold_is_skipped():
+@pytest.mark.parametrize("recheck", [1.0, 0.25])
+def test_no_sample_above_the_threshold_is_skipped(recheck: float):
     """Against a dense reference: every point whose density exceeds the threshold lies in
-    an occupied cell (random points over the box and times)."""
+    an occupied cell (random points over the box and times), also when only a share of
+    the occupied cells is re-asked at each update."""
     field = Blob()
-    r = _with_grid(field, resolution=24, time_bins=8, threshold=0.05, fraction=1.0)
+    r = _with_grid(field, resolution=24, time_bins=8, threshold=0.05, fraction=1.0,
+                   recheck=recheck)
     g = torch.Generator().manual_seed(9)
     lo, hi = r.occupancy.lo, r.occupancy.hi
     x = lo + torch.rand(400_000, 3, generator=g) * (hi - lo)
@@ -186,3 +189,34 @@ def test_a_fog_below_the_threshold_keeps_its_denser_half_instead_of_emptying_the
     # a field denser than the threshold somewhere keeps the configured threshold
     grid.update(lambda x, t: 5.0 * (x[:, 0] > 0.5).float(), torch.Generator().manual_seed(1))
     assert float(grid.effective_threshold()) == pytest.approx(0.01)
+
+
+def test_rechecking_a_share_of_the_occupied_cells_costs_that_share_and_forgets_at_the_same_rate():
+    """While nearly every cell is above the threshold an update asks about ``recheck`` of
+    them; a cell the field leaves empties after about as many updates as with
+    ``recheck = 1`` (γ per update: 90 updates from σ = 1 to the threshold 0.01)."""
+    def half(x: Tensor, t: Tensor) -> Tensor:     # σ = 1 on x > 0
+        return (x[:, 0] > 0).float()
+
+    def quarter(x: Tensor, t: Tensor) -> Tensor:  # the field leaves 0 < x < 0.5
+        return (x[:, 0] > 0.5).float()
+
+    slab = torch.tensor([[0.1, y, z] for y in (-0.9, -0.3, 0.3, 0.9) for z in (-0.9, 0.0, 0.9)])
+    emptied = {}
+    for recheck in (1.0, 0.25):
+        grid = OccupancyGrid([-1, -1, -1], [1, 1, 1], resolution=8, time_bins=1,
+                             threshold=0.01, fraction=0.25, recheck=recheck)
+        grid.update(half, torch.Generator().manual_seed(0))
+        asked = [grid.update(half, torch.Generator().manual_seed(s)) for s in range(1, 41)]
+        dense = int(grid._dense().sum())     # 256 cells with x > 0
+        empty = 512 - dense
+        assert dense == 256
+        expect = recheck * dense + 0.25 * empty
+        assert abs(sum(asked) / 40 - expect) < 4 * (expect / 40) ** 0.5 + 1
+        for k in range(1, 400):
+            grid.update(quarter, torch.Generator().manual_seed(100 + k))
+            if not grid.occupied(slab, torch.zeros(len(slab), 1)).any():
+                emptied[recheck] = k
+                break
+    assert emptied[1.0] == 90
+    assert 60 <= emptied[0.25] <= 180

@@ -26,9 +26,16 @@ renderer evaluates the field only at samples in occupied cells
 most ``1 − exp(−threshold · δ)`` of opacity over a step ``δ``.
 
 Updates (:class:`OccupancyUpdate`, a Lightning callback, every ``every`` steps) ask every
-unasked cell, every occupied cell and a random ``fraction`` of the empty ones, with a
-generator seeded by the step, so a resumed run updates exactly as an uninterrupted one;
-the grid is a buffer of the renderer and is saved in checkpoints.
+unasked cell, a random share ``recheck`` of the cells above the threshold and a random
+share ``fraction`` of the empty ones, with a generator seeded by the step, so a resumed
+run updates exactly as an uninterrupted one; the grid is a buffer of the renderer and is
+saved in checkpoints. A cell above the threshold is asked once in ``1/recheck`` updates
+on average, so its decay per ask is :math:`γ^{1/\text{recheck}}`: the moving maximum
+forgets at the rate ``γ`` per update whatever the share. Only asked cells change, and an
+asked cell keeps at least the density just sampled, so asking fewer cells can leave a
+cell occupied longer but never empties one the field fills. While the field is a fog
+(early training: nearly every cell above the threshold) this makes an update about
+``1/recheck`` times cheaper (``recheck = 1``: every such cell at every update).
 """
 
 from __future__ import annotations
@@ -63,6 +70,7 @@ class OccupancyGrid(nn.Module):
         threshold: density above which a cell is occupied.
         decay: ``γ`` of the moving maximum.
         every: steps between updates; fraction: share of the empty cells re-asked.
+        recheck: share of the cells above the threshold re-asked at each update.
         start_step: no sample is skipped before this step (the grid is updated).
         chunk: points per field call during an update.
 
@@ -84,17 +92,18 @@ class OccupancyGrid(nn.Module):
     def __init__(self, lo: Sequence[float], hi: Sequence[float], resolution: int = 32,
                  time_bins: int = 8, threshold: float = 0.01, decay: float = 0.95,
                  every: int = 16, fraction: float = 0.25, start_step: int = 0,
-                 chunk: int = 65536) -> None:
+                 chunk: int = 65536, recheck: float = 1.0) -> None:
         super().__init__()
         if resolution < 1 or time_bins < 1 or threshold < 0 or not 0 < decay <= 1 \
-                or every < 1 or not 0 <= fraction <= 1:
+                or every < 1 or not 0 <= fraction <= 1 or not 0 < recheck <= 1:
             raise InputError("config", "render.occupancy",
                              "resolution >= 1, time_bins >= 1, threshold >= 0, decay in (0, 1], "
-                             "every >= 1, fraction in [0, 1]",
-                             (resolution, time_bins, threshold, decay, every, fraction))
+                             "every >= 1, fraction in [0, 1], recheck in (0, 1]",
+                             (resolution, time_bins, threshold, decay, every, fraction,
+                              recheck))
         self.resolution, self.time_bins = int(resolution), int(time_bins)
         self.threshold, self.decay = float(threshold), float(decay)
-        self.every, self.fraction = int(every), float(fraction)
+        self.every, self.fraction, self.recheck = int(every), float(fraction), float(recheck)
         self.start_step, self.chunk = int(start_step), int(chunk)
         self.active = True  # skipping on (the renderer sets it from start_step)
         shape = (self.time_bins, *(self.resolution,) * 3)
@@ -157,12 +166,15 @@ class OccupancyGrid(nn.Module):
 
     @torch.no_grad()
     def update(self, density: DensityFn, gen: torch.Generator) -> int:
-        """Ask the field about the unasked, the occupied and a random share of the empty
-        cells (one jittered point each); returns the number of cells asked."""
+        """Ask the field about the unasked cells and random shares ``recheck`` of the
+        cells above the threshold and ``fraction`` of the empty ones (one jittered point
+        each); returns the number of cells asked."""
         flat_occ = self._dense().reshape(-1)
         n = flat_occ.numel()
         pick = torch.rand(n, generator=gen, device=gen.device).to(flat_occ.device)
-        cells = (flat_occ | (pick < self.fraction)).nonzero().squeeze(1)
+        unasked = ~self.asked.view(-1)
+        chosen = torch.where(flat_occ, pick < self.recheck, pick < self.fraction) | unasked
+        cells = chosen.nonzero().squeeze(1)
         if cells.numel() == 0:
             return 0
         g, b = self.resolution, self.time_bins
@@ -178,7 +190,8 @@ class OccupancyGrid(nn.Module):
                          for a in range(0, cells.numel(), self.chunk)])
         flat, asked = self.density.view(-1), self.asked.view(-1)
         old = flat[cells]
-        flat[cells] = torch.where(asked[cells], torch.maximum(self.decay * old, new), new)
+        decay = torch.where(flat_occ[cells], self.decay ** (1.0 / self.recheck), self.decay)
+        flat[cells] = torch.where(asked[cells], torch.maximum(decay * old, new), new)
         asked[cells] = True
         self.refresh()
         return int(cells.numel())
