@@ -389,3 +389,25 @@ def test_collapsed_cells_set_each_collapse_beside_the_papers_own_cell(tmp_path):
     assert "| table3 | w/o L_acc | `lego` | 1/3 | 1 | 23.18 | 0.00 | **no** |" in md
     assert "| table3 | only L_event | `static_lego` | 2/3 | 0, 1 | 16.50 | 7.36 | yes |" in md
     assert collapsed_cells_markdown([]) == ""
+
+
+def test_a_newer_method_version_supersedes_its_job_and_a_mixed_table_says_so(tmp_path):
+    from eventrecon.records import METHOD_VERSION
+    from eventrecon.report.runs import current_runs
+
+    old = {"method_version": None}          # a record older than the field: version 1
+    new = {"method_version": METHOD_VERSION}
+    jobs = [_metrics("spheres", psnr=20.0, seed=0, **old),
+            _metrics("spheres", psnr=30.0, seed=0, **new),   # the same job, re-run
+            _metrics("spheres", psnr=26.0, seed=1, **old),   # not re-run yet
+            _metrics("lego", psnr=22.0, seed=0, **old)]
+    runs = collect_runs([_sweep(tmp_path, jobs, "table3").parent.parent])
+    kept = current_runs(runs)
+    assert sorted((r.scene, r.record["seed"], r.version) for r in kept) == [
+        ("lego", 0, 1), ("spheres", 0, METHOD_VERSION), ("spheres", 1, 1)]
+    md = to_markdown(build_table("table3", kept))
+    sph = _parse_md(md)[next(t for t in _parse_md(md) if t.startswith("Spheres"))]
+    assert sph["Full Model"]["PSNR↑ ours"].startswith("28.000 ±")   # (30 + 26) / 2, never 20
+    text = " ".join(md.split())
+    assert ("Runs of several method versions (records' method_version): 2 of version 1 "
+            "(each of a ray's three renders") in text and f"; 1 of version {METHOD_VERSION} (" in text

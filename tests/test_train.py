@@ -13,7 +13,7 @@ import pytest
 import torch
 from integration import tiny_config
 
-from eventrecon import build, runner
+from eventrecon import build, records, runner
 from eventrecon.data import selection
 from eventrecon.data.batcher import Segment
 from eventrecon.errors import InputError
@@ -229,3 +229,21 @@ def test_lr_decays_exponentially_to_the_end_factor(data_dir: Path):
     with pytest.raises(InputError, match="trainer.lr_end_factor"):
         build.build_module(tiny_config(data_dir, "trainer.lr_end_factor=1.5"),
                            build.scene_properties(cfg, ds), None, Segment(0, 1000))
+
+
+def test_a_segment_trained_by_an_older_method_version_trains_again(
+        data_dir: Path, tmp_path: Path, monkeypatch, caplog):
+    old = records.METHOD_VERSION
+    runner.run(tiny_config(data_dir, "trainer.max_steps=4", "evaluate=false"), tmp_path)
+    seg = tmp_path / "seg0"
+    assert json.loads((seg / "done.json").read_text())["method_version"] == old
+    monkeypatch.setattr(records, "METHOD_VERSION", old + 1)   # the method changed since
+    with caplog.at_level("WARNING", logger="eventrecon.runner"):
+        again = runner.run(tiny_config(data_dir, "trainer.max_steps=4", "evaluate=false"),
+                           tmp_path)
+    assert f"trained by method version {old} (now {old + 1})" in caplog.text
+    assert (seg / "checkpoints" / f"last.method_v{old}.ckpt").is_file()   # kept, not resumed
+    state = torch.load(seg / "checkpoints" / "last.ckpt", weights_only=False)
+    assert state["eventrecon"]["method_version"] == old + 1 and state["global_step"] == 4
+    assert json.loads((seg / "done.json").read_text())["method_version"] == old + 1
+    assert again["method_version"] == old + 1

@@ -31,6 +31,7 @@ from eventrecon.data.datamodule import StepCounter
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.losses import LossConfig, total_loss
+from eventrecon import records
 from eventrecon.render.volume import Renderer
 
 __all__ = ["EventNeRFModule", "StepConfig", "NonFiniteLossError", "step_generator",
@@ -230,6 +231,7 @@ class EventNeRFModule(L.LightningModule):
             "clip_scale": float(self.renderer.clip_scale),
             "nonfinite_total": self.nonfinite_total,
             "opacity_log": list(self.opacity_log),
+            "method_version": records.METHOD_VERSION,
         }
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:

@@ -3,7 +3,8 @@
 A run folder holds
 
 - ``metrics.json``: the run's identity (:data:`REQUIRED_KEYS`: ``scene, model, loss,
-  views, fps, status``; optionally ``experiment``, ``tag``, ``seed``, and what it changed
+  views, fps, status``; optionally ``experiment``, ``tag``, ``seed``, ``method_version``
+  (:data:`METHOD_VERSION`; a record without one is version 1), and what it changed
   from the paper's method: ``schedule``, ``skip``, ``sizing``) and, once
   evaluated, ``psnr, ssim, lpips`` (``lpips`` may be null with an ``lpips_note``),
   ``psnr_background`` (the empty field's score on the same frames), ``wall_s``,
@@ -17,7 +18,12 @@ A run folder holds
   (``seg<k>/curve.csv``, the segment's own steps and training seconds) and, once the
   run is done, for the whole run (:func:`stitch_curves`);
 - ``seg<k>/done.json``: a trained segment — ``max_steps`` (its budget), ``steps``,
-  ``wall_s``, ``nonfinite_steps``, ``opacity_log`` (``[step, mean opacity]`` pairs).
+  ``wall_s``, ``nonfinite_steps``, ``opacity_log`` (``[step, mean opacity]`` pairs),
+  ``method_version``.
+
+A finished run (or segment) made with another :data:`METHOD_VERSION` is not finished for
+a sweep: it trains again, and the report reads only the newest version of each job
+(:func:`eventrecon.report.runs.current_runs`).
 
 Readers (:mod:`eventrecon.report.runs`) and writers (the runner, the held-out monitor)
 both use the names and functions here, so the format has one definition.
@@ -37,10 +43,19 @@ from eventrecon.checkpointing import atomic_write_bytes, atomic_write_json
 from eventrecon.errors import InputError
 from eventrecon.naming import dataset_name, name_from_meta
 
-__all__ = ["METRICS_FILE", "CURVE_FILE", "DONE_FILE", "CURVE_HEADER", "REQUIRED_KEYS",
+__all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "record_version", "METRICS_FILE", "CURVE_FILE", "DONE_FILE", "CURVE_HEADER", "REQUIRED_KEYS",
            "STATUSES", "run_info", "write_metrics", "read_metrics", "finished_metrics",
            "write_done", "read_done", "CurveLog", "read_curve_rows", "write_curve",
            "stitch_curves"]
+
+#: Version of the training method: bumped by every change that alters what a run trains
+#: (sampling, rendering, losses, optimiser) and so makes earlier records stale.
+METHOD_VERSION = 2
+#: What each version changed (the report's footnote for tables that mix versions).
+METHOD_VERSIONS: dict[int, str] = {
+    1: "each of a ray's three renders (t0, t1, t_ref) drew its own coarse samples",
+    2: "a ray's three renders share their coarse samples, as in the authors' code",
+}
 
 METRICS_FILE = "metrics.json"
 CURVE_FILE = "curve.csv"
@@ -72,7 +87,7 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
             "experiment": cfg.get("sweep_name"), "tag": cfg.get("tag"), "seed": cfg.get("seed"),
             # what the run changed from the paper's method (the tables footnote it)
             "schedule": cfg.trainer.get("schedule"), "skip": cfg.render.get("skip"),
-            "sizing": _sizing_choice(),
+            "sizing": _sizing_choice(), "method_version": METHOD_VERSION,
             "lr_end_factor": float(cfg.trainer.get("lr_end_factor", 1.0))}
 
 
@@ -122,8 +137,15 @@ def finished_metrics(path: str | Path, max_steps: int, evaluate: bool,
         return None
     done = json.loads(path.read_text())
     same = (done.get("status") in FINISHED and done.get("max_steps") == int(max_steps)
-            and (steps is None or done.get("steps") == steps))
+            and (steps is None or done.get("steps") == steps)
+            and record_version(done) == METHOD_VERSION)
     return done if same and (not evaluate or done.get("psnr") is not None) else None
+
+
+def record_version(record: Mapping[str, Any]) -> int:
+    """The :data:`METHOD_VERSION` a ``metrics.json`` or ``done.json`` was made with (1 when
+    it does not say: records older than the field)."""
+    return int(record.get("method_version") or 1)
 
 
 # ---------------------------------------------------------------------------- done.json
@@ -133,15 +155,19 @@ def write_done(seg_dir: str | Path, max_steps: int, steps: int, wall_s: float,
     atomic_write_json(Path(seg_dir) / DONE_FILE, {
         "max_steps": int(max_steps), "steps": int(steps), "wall_s": float(wall_s),
         "nonfinite_steps": int(nonfinite_steps),
-        "opacity_log": [[int(s), float(o)] for s, o in opacity_log]})
+        "opacity_log": [[int(s), float(o)] for s, o in opacity_log],
+        "method_version": METHOD_VERSION})
 
 
 def read_done(seg_dir: str | Path, max_steps: int | None = None) -> dict | None:
-    """The segment's ``done.json`` (trained with exactly ``max_steps`` when given), else None."""
+    """The segment's ``done.json`` (this :data:`METHOD_VERSION`; trained with exactly
+    ``max_steps`` when given), else None."""
     path = Path(seg_dir) / DONE_FILE
     if not path.exists():
         return None
     done = json.loads(path.read_text())
+    if record_version(done) != METHOD_VERSION:
+        return None
     return done if max_steps is None or int(done.get("max_steps", -1)) == max_steps else None
 
 

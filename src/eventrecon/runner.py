@@ -110,6 +110,13 @@ def _resume_checkpoint(cfg: DictConfig, seg_dir: Path, module: EventNeRFModule,
     if ckpt is None:
         return None
     info = inspect_checkpoint(ckpt, module.field)
+    version = records.record_version(info.meta)
+    if cfg.ckpt_path == "last" and version != records.METHOD_VERSION:
+        kept = Path(ckpt).with_name(f"last.method_v{version}.ckpt")
+        Path(ckpt).replace(kept)
+        log.warning("segment %d: %s was trained by method version %d (now %d): kept as %s, "
+                    "training starts afresh", k, ckpt, version, records.METHOD_VERSION, kept.name)
+        return None
     max_steps = int(cfg.trainer.max_steps)
     if info.step > max_steps:
         raise InputError(ckpt, "global_step", f"at most this run's {max_steps} steps per segment "

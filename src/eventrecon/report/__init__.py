@@ -27,7 +27,7 @@ from eventrecon.report.findings import (
     row_differences_markdown,
 )
 from eventrecon.report.paper import PAPER_TABLES
-from eventrecon.report.runs import Run, collect_runs, read_curve, read_run, write_run
+from eventrecon.report.runs import Run, collect_runs, current_runs, read_curve, read_run, write_run
 from eventrecon.report.tables import REAL_SCENE, build_table, to_latex, to_markdown, write_tables
 
 log = logging.getLogger(__name__)
@@ -57,7 +57,7 @@ def build_report(
     """Collect the runs under ``dirs`` and write every table and the accuracy-vs-time
     figure and table (``loss=full`` runs of ``curves_experiment``) into ``out``.
     Returns the written paths."""
-    runs = collect_runs(dirs)
+    runs = current_runs(collect_runs(dirs))
     log.info("found %d runs (%d ok)", len(runs), sum(r.ok for r in runs))
     paths = write_tables(runs, out, tables, real_scene=real_scene)
     paths += write_accuracy_vs_time(runs, out, levels, curves_experiment)

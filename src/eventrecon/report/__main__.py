@@ -15,6 +15,7 @@ import sys
 
 from eventrecon.errors import InputError
 from eventrecon.report import PAPER_TABLES, build_report
+
 from eventrecon.report.curves import DEFAULT_LEVELS
 from eventrecon.report.tables import REAL_SCENE
 
@@ -64,9 +65,9 @@ def main(argv: list[str] | None = None) -> int:
     if findings is not None:  # the report ends with the paper's claims, checked
         log.info("\n%s", findings.read_text())
     if args.copy_runs:
-        from eventrecon.report.runs import collect_runs, copy_runs
+        from eventrecon.report.runs import collect_runs, copy_runs, current_runs
 
-        copied = copy_runs(collect_runs(args.dirs), args.dirs, args.copy_runs)
+        copied = copy_runs(current_runs(collect_runs(args.dirs)), args.dirs, args.copy_runs)
         log.info("copied %d runs' metrics.json and curve.csv below %s", len(copied),
                  args.copy_runs)
     return 0

@@ -12,6 +12,7 @@ from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+from eventrecon.records import METHOD_VERSIONS
 from eventrecon.report.format import DASH, fmt
 from eventrecon.report.runs import Run
 from eventrecon.report.stats import MeanCI, mean_ci
@@ -106,6 +107,11 @@ def method_notes(runs: Sequence[Run]) -> list[str]:
                      + ", ".join(f"{d:g}×" for d in decays)
                      + " of its start by the last step (trainer.lr_end_factor; the authors "
                        "keep it constant).")
+    versions = Counter(r.version for r in {r.path: r for r in runs}.values())
+    if len(versions) > 1:
+        notes.append("Runs of several method versions (records' method_version): " + "; ".join(
+            f"{n} of version {v} ({METHOD_VERSIONS.get(v, 'unknown')})"
+            for v, n in sorted(versions.items())) + ". Cells are not yet all re-run.")
     steps = sorted({int(r.record["max_steps"]) for r in runs if r.record.get("max_steps")})
     if steps:
         notes.append(f"Training steps per segment: {', '.join(map(str, steps))} "

@@ -27,6 +27,7 @@ from eventrecon.records import (
     METRICS_FILE,
     read_curve_rows,
     read_metrics,
+    record_version,
     stitch_curves,
     write_metrics,
 )
@@ -66,6 +67,11 @@ class Run:
             return None
         v = float(v)
         return None if math.isnan(v) else v
+
+    @property
+    def version(self) -> int:
+        """The training method's version the run was made with (``method_version``)."""
+        return record_version(self.record)
 
     def number(self, name: str) -> float | None:
         """A numeric field of ``metrics.json`` (``wall_s``, ``sec_per_it``, ...) or ``None``."""
@@ -129,6 +135,32 @@ def collect_runs(dirs: Iterable[str | Path]) -> list[Run]:
             except InputError as exc:
                 log.warning("skipped run: %s", exc)
     return sorted(runs.values(), key=lambda r: str(r.path))
+
+
+#: A run's job: the fields of its record that say what was trained (not how it went).
+JOB_KEYS: tuple[str, ...] = ("scene", "model", "loss", "views", "fps", "seed", "tag",
+                             "schedule", "skip", "sizing", "lr_end_factor", "max_steps")
+
+
+def current_runs(runs: Iterable[Run]) -> list[Run]:
+    """The runs not superseded: a run is dropped when a run of the same job (its
+    experiment and :data:`JOB_KEYS`) was made with a newer ``method_version``
+    (:data:`eventrecon.records.METHOD_VERSION`), so a table never mixes a job's stale and
+    fresh records. Order is kept."""
+    runs = list(runs)
+    newest: dict[tuple, int] = {}
+    for r in runs:
+        key = _job(r)
+        newest[key] = max(newest.get(key, 0), r.version)
+    kept = [r for r in runs if r.version == newest[_job(r)]]
+    if len(kept) < len(runs):
+        log.info("%d run(s) superseded by a newer method version of the same job",
+                 len(runs) - len(kept))
+    return kept
+
+
+def _job(r: Run) -> tuple:
+    return (r.experiment, *(str(r.record.get(k)) for k in JOB_KEYS))
 
 
 def copy_runs(runs: Iterable[Run], roots: Iterable[str | Path], dest: str | Path) -> list[Path]:
