@@ -408,6 +408,9 @@ def test_a_newer_method_version_supersedes_its_job_and_a_mixed_table_says_so(tmp
     md = to_markdown(build_table("table3", kept))
     sph = _parse_md(md)[next(t for t in _parse_md(md) if t.startswith("Spheres"))]
     assert sph["Full Model"]["PSNR↑ ours"].startswith("28.000 ±")   # (30 + 26) / 2, never 20
+    from eventrecon.report.runs import versions_markdown
+    assert versions_markdown(kept).splitlines()[2] == (
+        f"- table3: 2 runs of method version 1, 1 run of method version {METHOD_VERSION}")
     text = " ".join(md.split())
     assert ("Runs of several method versions (records' method_version): 2 of version 1 "
             "(each of a ray's three renders") in text and f"; 1 of version {METHOD_VERSION} (" in text

@@ -27,7 +27,15 @@ from eventrecon.report.findings import (
     row_differences_markdown,
 )
 from eventrecon.report.paper import PAPER_TABLES
-from eventrecon.report.runs import Run, collect_runs, current_runs, read_curve, read_run, write_run
+from eventrecon.report.runs import (
+    Run,
+    collect_runs,
+    current_runs,
+    read_curve,
+    read_run,
+    versions_markdown,
+    write_run,
+)
 from eventrecon.report.tables import REAL_SCENE, build_table, to_latex, to_markdown, write_tables
 
 log = logging.getLogger(__name__)
@@ -63,7 +71,7 @@ def build_report(
     paths += write_accuracy_vs_time(runs, out, levels, curves_experiment)
     findings = Path(out) / "findings.md"
     sections = [row_differences_markdown(row_differences(runs)),
-                collapsed_cells_markdown(collapsed_cells(runs))]
+                collapsed_cells_markdown(collapsed_cells(runs)), versions_markdown(runs)]
     findings.write_text("\n".join([findings_markdown(check_findings(runs)),
                                    *(s for s in sections if s)]))
     return [*paths, findings]

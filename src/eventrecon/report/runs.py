@@ -159,6 +159,20 @@ def current_runs(runs: Iterable[Run]) -> list[Run]:
     return kept
 
 
+def versions_markdown(runs: Iterable[Run]) -> str:
+    """One line per experiment: how many of its runs each method version made, e.g.
+    ``- table3: 165 runs of method version 1`` (findings pair runs of one experiment, so
+    this says which method each finding measured)."""
+    by_exp: dict[str, dict[int, int]] = {}
+    for r in runs:
+        counts = by_exp.setdefault(r.experiment or "(no experiment)", {})
+        counts[r.version] = counts.get(r.version, 0) + 1
+    lines = [f"- {exp}: " + ", ".join(f"{n} run{'s' * (n != 1)} of method version {v}"
+                                      for v, n in sorted(counts.items()))
+             for exp, counts in sorted(by_exp.items())]
+    return "## Runs by method version\n\n" + "\n".join(lines) + "\n" if lines else ""
+
+
 def _job(r: Run) -> tuple:
     return (r.experiment, *(str(r.record.get(k)) for k in JOB_KEYS))
 
