@@ -26,12 +26,12 @@ import lightning as L
 import torch
 from torch import Tensor
 
+from eventrecon import records
 from eventrecon.data.batcher import RayBatcher
 from eventrecon.data.datamodule import StepCounter
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.losses import LossConfig, total_loss
-from eventrecon import records
 from eventrecon.render.volume import Renderer
 
 __all__ = ["EventNeRFModule", "StepConfig", "NonFiniteLossError", "step_generator",

@@ -43,10 +43,10 @@ from eventrecon.checkpointing import atomic_write_bytes, atomic_write_json
 from eventrecon.errors import InputError
 from eventrecon.naming import dataset_name, name_from_meta
 
-__all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "record_version", "METRICS_FILE", "CURVE_FILE", "DONE_FILE", "CURVE_HEADER", "REQUIRED_KEYS",
-           "STATUSES", "run_info", "write_metrics", "read_metrics", "finished_metrics",
-           "write_done", "read_done", "CurveLog", "read_curve_rows", "write_curve",
-           "stitch_curves"]
+__all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "record_version", "METRICS_FILE", "CURVE_FILE",
+           "DONE_FILE", "CURVE_HEADER", "REQUIRED_KEYS", "STATUSES", "run_info", "write_metrics",
+           "read_metrics", "finished_metrics", "write_done", "read_done", "CurveLog",
+           "read_curve_rows", "write_curve", "stitch_curves"]
 
 #: Version of the training method: bumped by every change that alters what a run trains
 #: (sampling, rendering, losses, optimiser) and so makes earlier records stale.

@@ -56,7 +56,8 @@ def stratified(
 
     >>> stratified(torch.tensor([0.0]), torch.tensor([1.0]), 4, perturb=False)
     tensor([[0.1250, 0.3750, 0.6250, 0.8750]])
-    >>> s = stratified(torch.zeros(4), torch.ones(4), 3, True, torch.Generator().manual_seed(0), copies=2)
+    >>> gen = torch.Generator().manual_seed(0)
+    >>> s = stratified(torch.zeros(4), torch.ones(4), 3, True, gen, copies=2)
     >>> bool((s[:2] == s[2:]).all())
     True
     """
