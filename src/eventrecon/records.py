@@ -160,14 +160,16 @@ def write_done(seg_dir: str | Path, max_steps: int, steps: int, wall_s: float,
         "method_version": METHOD_VERSION})
 
 
-def read_done(seg_dir: str | Path, max_steps: int | None = None) -> dict | None:
-    """The segment's ``done.json`` (this :data:`METHOD_VERSION`; trained with exactly
-    ``max_steps`` when given), else None."""
+def read_done(seg_dir: str | Path, max_steps: int | None = None,
+              current_method: bool = False) -> dict | None:
+    """The segment's ``done.json`` (trained with exactly ``max_steps`` when given, and by
+    this :data:`METHOD_VERSION` if ``current_method``: a sweep's "trained before"), else
+    None."""
     path = Path(seg_dir) / DONE_FILE
     if not path.exists():
         return None
     done = json.loads(path.read_text())
-    if record_version(done) != METHOD_VERSION:
+    if current_method and record_version(done) != METHOD_VERSION:
         return None
     return done if max_steps is None or int(done.get("max_steps", -1)) == max_steps else None
 

@@ -224,7 +224,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
     trained: dict[int, Any] = {}
     for k in todo:
         seg_dir = out_dir / f"seg{k}"
-        if records.read_done(seg_dir, steps) is not None:
+        if records.read_done(seg_dir, steps, current_method=True) is not None:
             log.info("segment %d: trained before (%s), not trained again", k,
                      seg_dir / records.DONE_FILE)
             continue
@@ -242,7 +242,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
                                "steps_per_segment": steps,
                                "segments": [[s.start, s.end] for s in segments]}
     seg_dirs = [out_dir / f"seg{k}" for k in range(len(segments))]
-    dones = [records.read_done(d, steps) for d in seg_dirs]
+    dones = [records.read_done(d, steps, current_method=True) for d in seg_dirs]
     if any(d is None for d in dones):
         missing = [k for k, d in enumerate(dones) if d is None]
         log.info("segments %s not trained yet: the run is evaluated when they are", missing)
