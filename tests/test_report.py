@@ -396,7 +396,7 @@ def test_a_newer_method_version_supersedes_its_job_and_a_mixed_table_says_so(tmp
     from eventrecon.report.runs import current_runs
 
     old = {"method_version": None}          # a record older than the field: version 1
-    new = {"method_version": METHOD_VERSION}
+    new = {"method_version": METHOD_VERSION, "lr_end_factor": 1.0}   # a key v1 lacked
     jobs = [_metrics("spheres", psnr=20.0, seed=0, **old),
             _metrics("spheres", psnr=30.0, seed=0, **new),   # the same job, re-run
             _metrics("spheres", psnr=26.0, seed=1, **old),   # not re-run yet

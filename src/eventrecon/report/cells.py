@@ -1,9 +1,10 @@
 """A table cell of our runs: one run per seed, their mean ± 95 % interval, and what the
 runs changed from the paper's method (for the footnotes).
 
-A cell keeps every seed's run (:func:`per_seed`: ok before collapsed before failed, then
-the newest); only ``ok`` runs are scored (:func:`cell_stats`); :attr:`Cell.count` says
-how many of how many, and why the others were not.
+A cell keeps every seed's run (:func:`per_seed`: the newest method version, then ok before
+collapsed before failed, then the newest); only ``ok`` runs are scored
+(:func:`cell_stats`); :attr:`Cell.count` says how many of how many, and why the others
+were not.
 """
 
 from __future__ import annotations
@@ -56,12 +57,13 @@ _STATUS_ORDER = {"ok": 2, "collapsed": 1, "failed": 0}
 
 
 def per_seed(runs: Sequence[Run]) -> list[Run]:
-    """One run per seed: ok before collapsed before failed, then the newest."""
+    """One run per seed: the newest method version, then ok before collapsed before failed,
+    then the newest file."""
     best: dict[object, Run] = {}
     for r in runs:
         key = r.record.get("seed")
-        rank = (_STATUS_ORDER.get(r.status, -1), r.mtime, str(r.path))
-        if key not in best or rank > (_STATUS_ORDER.get(best[key].status, -1),
+        rank = (r.version, _STATUS_ORDER.get(r.status, -1), r.mtime, str(r.path))
+        if key not in best or rank > (best[key].version, _STATUS_ORDER.get(best[key].status, -1),
                                       best[key].mtime, str(best[key].path)):
             best[key] = r
     return [best[k] for k in sorted(best, key=str)]

@@ -173,8 +173,12 @@ def versions_markdown(runs: Iterable[Run]) -> str:
     return "## Runs by method version\n\n" + "\n".join(lines) + "\n" if lines else ""
 
 
+#: Values a record written before its key existed stands for.
+_JOB_DEFAULTS: dict[str, Any] = {"lr_end_factor": 1.0}
+
+
 def _job(r: Run) -> tuple:
-    return (r.experiment, *(str(r.record.get(k)) for k in JOB_KEYS))
+    return (r.experiment, *(str(r.record.get(k, _JOB_DEFAULTS.get(k))) for k in JOB_KEYS))
 
 
 def copy_runs(runs: Iterable[Run], roots: Iterable[str | Path], dest: str | Path) -> list[Path]:
