@@ -401,10 +401,17 @@ def test_a_newer_method_version_supersedes_its_job_and_a_mixed_table_says_so(tmp
             _metrics("spheres", psnr=30.0, seed=0, **new),   # the same job, re-run
             _metrics("spheres", psnr=26.0, seed=1, **old),   # not re-run yet
             _metrics("lego", psnr=22.0, seed=0, **old)]
-    runs = collect_runs([_sweep(tmp_path, jobs, "table3").parent.parent])
+    sweep = _sweep(tmp_path, jobs, "table3")
+    stale = sweep / "0" / "metrics.json"      # the version-1 record is the later file
+    os.utime(stale, (stale.stat().st_mtime + 60, stale.stat().st_mtime + 60))
+    runs = collect_runs([sweep.parent.parent])
     kept = current_runs(runs)
     assert sorted((r.scene, r.record["seed"], r.version) for r in kept) == [
         ("lego", 0, 1), ("spheres", 0, METHOD_VERSION), ("spheres", 1, 1)]
+    # a cell built from all runs still takes each seed's newest version (30, not 20)
+    from eventrecon.report.cells import per_seed
+    spheres = per_seed([r for r in runs if r.scene == "spheres"])
+    assert [(r.record["seed"], r.metric("psnr")) for r in spheres] == [(0, 30.0), (1, 26.0)]
     md = to_markdown(build_table("table3", kept))
     sph = _parse_md(md)[next(t for t in _parse_md(md) if t.startswith("Spheres"))]
     assert sph["Full Model"]["PSNR↑ ours"].startswith("28.000 ±")   # (30 + 26) / 2, never 20

@@ -56,15 +56,18 @@ class Cell:
 _STATUS_ORDER = {"ok": 2, "collapsed": 1, "failed": 0}
 
 
+def _rank(r: Run) -> tuple:
+    """The newest method version first, then ok > collapsed > failed, then the later file."""
+    return r.version, _STATUS_ORDER.get(r.status, -1), r.mtime, str(r.path)
+
+
 def per_seed(runs: Sequence[Run]) -> list[Run]:
     """One run per seed: the newest method version, then ok before collapsed before failed,
     then the newest file."""
     best: dict[object, Run] = {}
     for r in runs:
         key = r.record.get("seed")
-        rank = (r.version, _STATUS_ORDER.get(r.status, -1), r.mtime, str(r.path))
-        if key not in best or rank > (best[key].version, _STATUS_ORDER.get(best[key].status, -1),
-                                      best[key].mtime, str(best[key].path)):
+        if key not in best or _rank(r) > _rank(best[key]):
             best[key] = r
     return [best[k] for k in sorted(best, key=str)]
 

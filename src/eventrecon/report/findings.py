@@ -68,7 +68,7 @@ class Finding:
 def _scored(runs: Sequence[Run], pick: Callable[[Run], bool]) -> dict[tuple, Run]:
     """``(scene, seed) → run`` of the scored runs that ``pick`` selects (newest wins)."""
     out: dict[tuple, Run] = {}
-    for r in sorted(runs, key=lambda r: (r.version, r.mtime)):
+    for r in sorted(runs, key=lambda r: r.recency):
         if r.ok and pick(r):
             out[(r.scene, r.record.get("seed"))] = r
     return out
@@ -301,7 +301,7 @@ def collapsed_cells(runs: Sequence[Run]) -> list[CollapsedCell]:
     paper's PSNR for the cell and its gap to the best of the paper's column — the check of
     "no cell collapses unless the paper's own cell does"."""
     cells: dict[tuple[str, str, str], dict[int, Run]] = {}
-    for r in sorted(runs, key=lambda r: (r.version, r.mtime)):  # a re-run of a seed replaces it
+    for r in sorted(runs, key=lambda r: r.recency):  # a re-run of a seed replaces it
         if r.experiment in ROW_OF and (row := ROW_OF[r.experiment](r, r.experiment)):
             cells.setdefault((r.experiment, row, r.scene), {})[int(r.record.get("seed") or 0)] = r
     out = []

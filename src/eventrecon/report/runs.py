@@ -73,6 +73,12 @@ class Run:
         """The training method's version the run was made with (``method_version``)."""
         return record_version(self.record)
 
+    @property
+    def recency(self) -> tuple[int, float]:
+        """``(version, mtime)``: of two runs of one job or seed, the greater one replaces
+        the other (a newer method version first, then the later file)."""
+        return self.version, self.mtime
+
     def number(self, name: str) -> float | None:
         """A numeric field of ``metrics.json`` (``wall_s``, ``sec_per_it``, ...) or ``None``."""
         return self.metric(name)
@@ -140,6 +146,8 @@ def collect_runs(dirs: Iterable[str | Path]) -> list[Run]:
 #: A run's job: the fields of its record that say what was trained (not how it went).
 JOB_KEYS: tuple[str, ...] = ("scene", "model", "loss", "views", "fps", "seed", "tag",
                              "schedule", "skip", "sizing", "lr_end_factor", "max_steps")
+#: Values a record written before its key existed stands for.
+_JOB_DEFAULTS: dict[str, Any] = {"lr_end_factor": 1.0}
 
 
 def current_runs(runs: Iterable[Run]) -> list[Run]:
@@ -171,10 +179,6 @@ def versions_markdown(runs: Iterable[Run]) -> str:
                                       for v, n in sorted(counts.items()))
              for exp, counts in sorted(by_exp.items())]
     return "## Runs by method version\n\n" + "\n".join(lines) + "\n" if lines else ""
-
-
-#: Values a record written before its key existed stands for.
-_JOB_DEFAULTS: dict[str, Any] = {"lr_end_factor": 1.0}
 
 
 def _job(r: Run) -> tuple:
