@@ -422,3 +422,19 @@ def test_a_newer_method_version_supersedes_its_job_and_a_mixed_table_says_so(tmp
     assert ("Runs of several method versions (records' method_version): 2 of version 1 "
             "(each of a ray's three renders") in text
     assert f"; 1 of version {METHOD_VERSION} (" in text
+
+
+def test_a_table_whose_runs_of_a_scene_used_different_datasets_says_so(tmp_path):
+    from eventrecon.report.cells import method_notes
+    from eventrecon.report.runs import read_run
+
+    def runs(*ids):
+        sweep = _sweep(tmp_path / "-".join(map(str, ids)),
+                       [_metrics("spheres", seed=i, data_id=d) for i, d in enumerate(ids)])
+        return [read_run(sweep / str(i)) for i in range(len(ids))]
+    assert not any("datasets" in n for n in method_notes(runs("spheres-aa", "spheres-aa")))
+    note = next(n for n in method_notes(runs("spheres-aa", "spheres-bb", "spheres-bb", None))
+                if "datasets" in n)
+    assert note == ("`spheres` runs on several datasets (records' data_id): 1 on `spheres-aa`; "
+                    "2 on `spheres-bb`; 1 unrecorded (made before records named their data). "
+                    "Cells are not yet all re-run on one.")

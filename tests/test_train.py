@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from pathlib import Path
 
 import lightning as L
@@ -21,6 +22,7 @@ from eventrecon.losses import total_loss
 from eventrecon.module import step_generator
 from eventrecon.records import stitch_curves
 from eventrecon.segments import segment_config, segment_steps
+from eventrecon.sim.pipeline import dataset_path
 
 
 @pytest.fixture(scope="module")
@@ -247,3 +249,28 @@ def test_a_segment_trained_by_an_older_method_version_trains_again(
     assert state["eventrecon"]["method_version"] == old + 1 and state["global_step"] == 4
     assert json.loads((seg / "done.json").read_text())["method_version"] == old + 1
     assert again["method_version"] == old + 1
+
+
+def test_a_segment_trained_on_other_data_trains_again(data_dir: Path, tmp_path: Path, caplog):
+    # the same job on a changed dataset (a simulated scene's folder name carries its spec's
+    # hash): its records and checkpoint are stale; on the same data the segment is kept
+    root = dataset_path(tiny_config(data_dir).scene, data_dir)
+    changed = tmp_path / "changed-scene"
+    shutil.copytree(root, changed)
+    out, seg = tmp_path / "run", tmp_path / "run" / "seg0"
+    for data in (root, root):
+        with caplog.at_level("INFO", logger="eventrecon.runner"):
+            runner.run(tiny_config(data_dir, f"data.root={data}", "trainer.max_steps=4",
+                                   "evaluate=false"), out)
+    assert "trained before" in caplog.text and "kept as" not in caplog.text
+    assert json.loads((seg / "done.json").read_text())["data_id"] == root.name
+    with caplog.at_level("WARNING", logger="eventrecon.runner"):
+        again = runner.run(tiny_config(data_dir, f"data.root={changed}", "trainer.max_steps=4",
+                                       "evaluate=false"), out)
+    assert f"trained on {root.name} (now changed-scene)" in caplog.text
+    assert (seg / "checkpoints" / f"last.data_{root.name}.ckpt").is_file()   # kept, not resumed
+    state = torch.load(seg / "checkpoints" / "last.ckpt", weights_only=False)
+    assert state["eventrecon"]["data_id"] == "changed-scene" and state["global_step"] == 4
+    assert json.loads((seg / "done.json").read_text())["data_id"] == "changed-scene"
+    assert again["data_id"] == "changed-scene"
+    assert records.finished_metrics(out / "metrics.json", 4, False, 4, root.name) is None

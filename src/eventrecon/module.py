@@ -119,6 +119,8 @@ class EventNeRFModule(L.LightningModule):
         #: ``(step, mean opacity)`` of the fine level's three renders, every ``log_every``
         #: steps (the collapse check, :mod:`eventrecon.collapse`)
         self.opacity_log: list[tuple[int, float]] = []
+        #: the dataset folder's name the runner trains on (recorded in checkpoints)
+        self.data_id: str | None = None
 
     def setup(self, stage: str) -> None:
         """Take the DataModule's batcher (built on this process's device)."""
@@ -232,6 +234,7 @@ class EventNeRFModule(L.LightningModule):
             "nonfinite_total": self.nonfinite_total,
             "opacity_log": list(self.opacity_log),
             "method_version": records.METHOD_VERSION,
+            "data_id": self.data_id,
         }
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:

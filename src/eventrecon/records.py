@@ -43,10 +43,10 @@ from eventrecon.checkpointing import atomic_write_bytes, atomic_write_json
 from eventrecon.errors import InputError
 from eventrecon.naming import dataset_name, name_from_meta
 
-__all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "record_version", "METRICS_FILE", "CURVE_FILE",
-           "DONE_FILE", "CURVE_HEADER", "REQUIRED_KEYS", "STATUSES", "run_info", "write_metrics",
-           "read_metrics", "finished_metrics", "write_done", "read_done", "CurveLog",
-           "read_curve_rows", "write_curve", "stitch_curves"]
+__all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "record_version", "same_data", "METRICS_FILE",
+           "CURVE_FILE", "DONE_FILE", "CURVE_HEADER", "REQUIRED_KEYS", "STATUSES", "run_info",
+           "write_metrics", "read_metrics", "finished_metrics", "write_done", "read_done",
+           "CurveLog", "read_curve_rows", "write_curve", "stitch_curves"]
 
 #: Version of the training method: bumped by every change that alters what a run trains
 #: (sampling, rendering, losses, optimiser) and so makes earlier records stale.
@@ -74,10 +74,12 @@ OPTIONAL_KEYS: tuple[str, ...] = ("psnr", "ssim", "lpips", "lpips_note", "wall_s
 
 # ---------------------------------------------------------------------------- metrics.json
 def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
-             fps: float | None = None) -> dict[str, Any]:
+             fps: float | None = None, data_id: str | None = None) -> dict[str, Any]:
     """What identifies a run in the reports: scene, model, loss, views, fps, experiment,
     tag and seed (``cfg`` is the run's composed config, ``meta`` the dataset's). The scene
-    is the dataset's own name for a ``data.root`` run (:mod:`eventrecon.naming`)."""
+    is the dataset's own name for a ``data.root`` run (:mod:`eventrecon.naming`);
+    ``data_id`` the dataset folder's name (a simulated scene's carries the hash of its
+    spec, so a changed scene makes earlier records of it stale: :func:`same_data`)."""
     name = (dataset_name(cfg.data.root, None) if cfg.data.get("root")
             else name_from_meta(meta) or cfg.scene.get("name", "custom"))
     return {"scene": name,
@@ -89,7 +91,7 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
             # what the run changed from the paper's method (the tables footnote it)
             "schedule": cfg.trainer.get("schedule"), "skip": cfg.render.get("skip"),
             "sizing": _sizing_choice(), "method_version": METHOD_VERSION,
-            "lr_end_factor": float(cfg.trainer.get("lr_end_factor", 1.0))}
+            "lr_end_factor": float(cfg.trainer.get("lr_end_factor", 1.0)), "data_id": data_id}
 
 
 def _sizing_choice() -> str | None:
@@ -130,16 +132,17 @@ def read_metrics(path: str | Path) -> dict[str, Any]:
 
 
 def finished_metrics(path: str | Path, max_steps: int, evaluate: bool,
-                     steps: int | None = None) -> dict | None:
+                     steps: int | None = None, data_id: str | None = None) -> dict | None:
     """``metrics.json`` of the same finished run (status ok or collapsed, the same
-    ``max_steps`` and, when given, the same ``steps``; scored if ``evaluate``), else ``None``."""
+    ``max_steps`` and, when given, the same ``steps`` and data (:func:`same_data`); scored
+    if ``evaluate``), else ``None``."""
     path = Path(path)
     if not path.exists():
         return None
     done = json.loads(path.read_text())
     same = (done.get("status") in FINISHED and done.get("max_steps") == int(max_steps)
             and (steps is None or done.get("steps") == steps)
-            and record_version(done) == METHOD_VERSION)
+            and record_version(done) == METHOD_VERSION and same_data(done, data_id))
     return done if same and (not evaluate or done.get("psnr") is not None) else None
 
 
@@ -149,27 +152,37 @@ def record_version(record: Mapping[str, Any]) -> int:
     return int(record.get("method_version") or 1)
 
 
+def same_data(record: Mapping[str, Any], data_id: str | None) -> bool:
+    """Whether a record (``metrics.json``, ``done.json``, checkpoint meta) was made on the
+    dataset ``data_id``. A record that names no dataset predates the field and is taken
+    to match, as is any record when ``data_id`` is ``None`` (not known)."""
+    made_on = record.get("data_id")
+    return data_id is None or made_on is None or made_on == data_id
+
+
 # ---------------------------------------------------------------------------- done.json
 def write_done(seg_dir: str | Path, max_steps: int, steps: int, wall_s: float,
-               nonfinite_steps: int, opacity_log: Iterable[tuple[int, float]] = ()) -> None:
-    """Record a trained segment (``seg<k>/done.json``), with its logged mean opacity."""
+               nonfinite_steps: int, opacity_log: Iterable[tuple[int, float]] = (),
+               data_id: str | None = None) -> None:
+    """Record a trained segment (``seg<k>/done.json``), with its logged mean opacity and
+    the dataset it was trained on."""
     atomic_write_json(Path(seg_dir) / DONE_FILE, {
         "max_steps": int(max_steps), "steps": int(steps), "wall_s": float(wall_s),
         "nonfinite_steps": int(nonfinite_steps),
         "opacity_log": [[int(s), float(o)] for s, o in opacity_log],
-        "method_version": METHOD_VERSION})
+        "method_version": METHOD_VERSION, "data_id": data_id})
 
 
 def read_done(seg_dir: str | Path, max_steps: int | None = None,
-              current_method: bool = False) -> dict | None:
-    """The segment's ``done.json`` (trained with exactly ``max_steps`` when given, and by
-    this :data:`METHOD_VERSION` if ``current_method``: a sweep's "trained before"), else
-    None."""
+              current_method: bool = False, data_id: str | None = None) -> dict | None:
+    """The segment's ``done.json`` (trained with exactly ``max_steps`` when given, by this
+    :data:`METHOD_VERSION` if ``current_method`` and on the dataset ``data_id`` when given:
+    a sweep's "trained before"), else None."""
     path = Path(seg_dir) / DONE_FILE
     if not path.exists():
         return None
     done = json.loads(path.read_text())
-    if current_method and record_version(done) != METHOD_VERSION:
+    if (current_method and record_version(done) != METHOD_VERSION) or not same_data(done, data_id):
         return None
     return done if max_steps is None or int(done.get("max_steps", -1)) == max_steps else None
 

@@ -111,11 +111,18 @@ def _resume_checkpoint(cfg: DictConfig, seg_dir: Path, module: EventNeRFModule,
         return None
     info = inspect_checkpoint(ckpt, module.field)
     version = records.record_version(info.meta)
-    if cfg.ckpt_path == "last" and version != records.METHOD_VERSION:
-        kept = Path(ckpt).with_name(f"last.method_v{version}.ckpt")
+    stale = None
+    if version != records.METHOD_VERSION:
+        stale = (f"method_v{version}",
+                 f"trained by method version {version} (now {records.METHOD_VERSION})")
+    elif not records.same_data(info.meta, module.data_id):
+        stale = (f"data_{info.meta['data_id']}",
+                 f"trained on {info.meta['data_id']} (now {module.data_id})")
+    if cfg.ckpt_path == "last" and stale is not None:
+        kept = Path(ckpt).with_name(f"last.{stale[0]}.ckpt")
         Path(ckpt).replace(kept)
-        log.warning("segment %d: %s was trained by method version %d (now %d): kept as %s, "
-                    "training starts afresh", k, ckpt, version, records.METHOD_VERSION, kept.name)
+        log.warning("segment %d: %s was %s: kept as %s, training starts afresh", k, ckpt,
+                    stale[1], kept.name)
         return None
     max_steps = int(cfg.trainer.max_steps)
     if info.step > max_steps:
@@ -127,13 +134,16 @@ def _resume_checkpoint(cfg: DictConfig, seg_dir: Path, module: EventNeRFModule,
 
 def train_segment(cfg: DictConfig, props: SceneProperties, train: SplitData,
                   heldout: SplitData | None, k: int, seg: Segment, out_dir: Path,
-                  n_segments: int = 1) -> tuple[EventNeRFModule, float]:
+                  n_segments: int = 1, data_id: str | None = None
+                  ) -> tuple[EventNeRFModule, float]:
     """Train (or resume) segment ``k`` for ``cfg.trainer.max_steps`` steps (a config from
-    :func:`~eventrecon.segments.segment_config`); returns the module and the segment's
-    training seconds (a resumed segment counts the time before the interruption too)."""
+    :func:`~eventrecon.segments.segment_config`) on the dataset ``data_id``; returns the
+    module and the segment's training seconds (a resumed segment counts the time before
+    the interruption too)."""
     seg_dir = out_dir / f"seg{k}"
     L.seed_everything(cfg.seed + 1000 * k, workers=True, verbose=False)
     module = build_module(cfg, props, None, seg, k)
+    module.data_id = data_id
     data = SegmentDataModule(train, seg, props.decay, props.bayer, cfg.data.neg_ratio)
     callbacks: list = []
     monitor = None
@@ -215,8 +225,9 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
     if cfg.ckpt_path not in (None, "last") and len(todo) > 1:
         raise InputError("config", "ckpt_path", f"'last', or one checkpoint with data.segment=K "
                          f"(one file cannot resume {len(todo)} segments)", cfg.ckpt_path)
+    data_id = Path(ds.root).name
     info = records.run_info(cfg, ds.meta, views=train.n_views,
-                            fps=cfg.data.fps or props.rgb_fps)
+                            fps=cfg.data.fps or props.rgb_fps, data_id=data_id)
     steps = segment_steps(cfg, len(segments))
     seg_cfg = segment_config(cfg, steps)
     log.info("run %s: %d training views, %d RGB frames, %d segment(s), %d steps each",
@@ -224,16 +235,16 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
     trained: dict[int, Any] = {}
     for k in todo:
         seg_dir = out_dir / f"seg{k}"
-        if records.read_done(seg_dir, steps, current_method=True) is not None:
+        if records.read_done(seg_dir, steps, current_method=True, data_id=data_id) is not None:
             log.info("segment %d: trained before (%s), not trained again", k,
                      seg_dir / records.DONE_FILE)
             continue
         module, wall = train_segment(seg_cfg, props, train, heldout, k, segments[k], out_dir,
-                                     len(segments))
+                                     len(segments), data_id)
         if _global_rank() != 0:
             continue  # DDP: rank 0 records and evaluates
         records.write_done(seg_dir, steps, module.global_step, wall, module.nonfinite_total,
-                           module.opacity_log)
+                           module.opacity_log, data_id)
         trained[k] = (module.field, module.renderer)
     if _global_rank() != 0:
         return {**info, "status": "ok", "error": None, "rank": _global_rank()}
@@ -242,7 +253,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
                                "steps_per_segment": steps,
                                "segments": [[s.start, s.end] for s in segments]}
     seg_dirs = [out_dir / f"seg{k}" for k in range(len(segments))]
-    dones = [records.read_done(d, steps, current_method=True) for d in seg_dirs]
+    dones = [records.read_done(d, steps, current_method=True, data_id=data_id) for d in seg_dirs]
     if any(d is None for d in dones):
         missing = [k for k, d in enumerate(dones) if d is None]
         log.info("segments %s not trained yet: the run is evaluated when they are", missing)
@@ -253,7 +264,8 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
     metrics["sec_per_it"] = metrics["wall_s"] / max(metrics["steps"], 1)
     with exclusive(out_dir / ".evaluate.lock"):  # parallel segment jobs: evaluate once
         previous = records.finished_metrics(out_dir / records.METRICS_FILE,
-                                            metrics["max_steps"], cfg.evaluate, metrics["steps"])
+                                            metrics["max_steps"], cfg.evaluate, metrics["steps"],
+                                            data_id)
         if previous is not None:
             return previous
         rows = records.stitch_curves(seg_dirs)

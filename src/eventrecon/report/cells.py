@@ -89,6 +89,23 @@ def fmt_ci(v: MeanCI, decimals: int) -> str:
     return fmt(v.mean, decimals) + (f" ± {v.half:.{decimals}f}" if v.half is not None else "")
 
 
+def _dataset_notes(runs: Sequence[Run]) -> list[str]:
+    """A footnote per scene whose runs were trained on different datasets (records'
+    ``data_id``: a changed scene spec gets a new one; records without it predate it)."""
+    by_scene: dict[str, Counter] = {}
+    for r in {r.path: r for r in runs}.values():
+        by_scene.setdefault(r.scene, Counter())[r.record.get("data_id")] += 1
+    notes = []
+    for scene, ids in sorted(by_scene.items()):
+        if len(ids) > 1:
+            parts = [f"{n} on `{d}`" for d, n in sorted((d, n) for d, n in ids.items() if d)]
+            if ids.get(None):
+                parts.append(f"{ids[None]} unrecorded (made before records named their data)")
+            notes.append(f"`{scene}` runs on several datasets (records' data_id): "
+                         + "; ".join(parts) + ". Cells are not yet all re-run on one.")
+    return notes
+
+
 def method_notes(runs: Sequence[Run]) -> list[str]:
     """Footnotes naming what the runs changed from the paper's method (their records say)."""
     notes = []
@@ -117,6 +134,7 @@ def method_notes(runs: Sequence[Run]) -> list[str]:
         notes.append("Runs of several method versions (records' method_version): " + "; ".join(
             f"{n} of version {v} ({METHOD_VERSIONS.get(v, 'unknown')})"
             for v, n in sorted(versions.items())) + ". Cells are not yet all re-run.")
+    notes += _dataset_notes(runs)
     steps = sorted({int(r.record["max_steps"]) for r in runs if r.record.get("max_steps")})
     if steps:
         notes.append(f"Training steps per segment: {', '.join(map(str, steps))} "
