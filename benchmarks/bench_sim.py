@@ -22,6 +22,7 @@
 
     python -m benchmarks sim [--repeats 3] [--quick] [--only grating|core|scene]
                              [--v2e DIR] [--baseline OLD_IDEAL_PY]
+                             [--max-log-step 0.25] [--max-step 2e-3]   (the grating's core)
 
 Medians over repeats, torch and numpy on one thread (run with ``OMP_NUM_THREADS=1``).
 """
@@ -181,28 +182,31 @@ def _load_baseline(path: str | None):
     return mod
 
 
-def _core(mod, signal, P: int, theta: float, max_log_step: float = 0.25):
+def _core(mod, signal, P: int, theta: float, max_log_step: float = 0.25,
+          max_step: float = 2e-3):
     setup = mod.SignalSetup(np.full(P, theta), np.full(P, theta), np.full((P, 3), 1 / 3))
     t0 = time.perf_counter()
     res = mod.run_core(signal, np.arange(P), setup, mod.CoreSettings(theta, max_log_step,
-                                                                     2e-3, 1e-6))
+                                                                     max_step, 1e-6))
     return res, time.perf_counter() - t0
 
 
 def bench_grating(width: int, height: int, theta: float, repeats: int, Emulator=None,
-                  baseline=None) -> None:
-    """Missed / extra / timestamp error and events/s of the core, frame-fed emission and
-    (optionally) v2e and a baseline core on the grating; logs one line each."""
+                  baseline=None, max_log_step: float = 0.25, max_step: float = 2e-3) -> None:
+    """Missed / extra / timestamp error and events/s of the core (``max_log_step``,
+    ``max_step``: the spec defaults unless given), frame-fed emission and (optionally)
+    v2e and a baseline core on the grating; logs one line each."""
+    core_settings = {"max_log_step": max_log_step, "max_step": max_step}
     gr = Grating(width, height)
     truth = gr.truth(theta)
     tk = np.linspace(0.0, 1.0, 501)
     frames = np.stack([gr(np.arange(gr.P), np.full(gr.P, x)) for x in tk])
     sec: dict = {"core": [], "frames": [], "v2e": [], "base": []}
     for _ in range(repeats):                       # alternated, medians below
-        core, dt = _core(ideal, gr, gr.P, theta)
+        core, dt = _core(ideal, gr, gr.P, theta, **core_settings)
         sec["core"].append(dt)
         if baseline is not None:
-            base, dt = _core(baseline, gr, gr.P, theta)
+            base, dt = _core(baseline, gr, gr.P, theta, **core_settings)
             sec["base"].append(dt)
         t0 = time.perf_counter()
         ff = frame_events(frames, tk, theta, theta)
@@ -215,8 +219,9 @@ def bench_grating(width: int, height: int, theta: float, repeats: int, Emulator=
         runs.append(("base", (base.g, base.t, base.p)))
     if Emulator is not None:
         runs.append(("v2e", (v2e[0], v2e[1] / gr.T, v2e[2])))
-    log.info("grating %dx%d θ=%.1f: %d true events (%d marginal)", width, height, theta,
-             truth["g"].size, int(truth["optional"].sum()))
+    log.info("grating %dx%d θ=%.1f (core: max_log_step %g, max_step %g): %d true events "
+             "(%d marginal)", width, height, theta, max_log_step, max_step, truth["g"].size,
+             int(truth["optional"].sum()))
     for name, (g, t, p) in runs:
         m = match_events(g, t, p, truth, 2e-3 / gr.T)
         err = m["err"] * gr.T * 1e6
@@ -304,6 +309,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--v2e", metavar="DIR", help="a v2e checkout: also time its emulator")
     ap.add_argument("--baseline", metavar="FILE",
                     help="another ideal.py (e.g. the previous commit's): compare its core")
+    ap.add_argument("--max-log-step", type=float, default=0.25,
+                    help="the core's step bound in L, in units of θ, on the grating")
+    ap.add_argument("--max-step", type=float, default=2e-3,
+                    help="the core's longest step on the grating (normalised time)")
     args = ap.parse_args(argv if argv is not None else [])
     sizes = [(96, 72)] + ([] if args.quick else [(346, 260)])
     with torch_threads(1):
@@ -311,7 +320,8 @@ def main(argv: list[str] | None = None) -> None:
             Emulator, baseline = _load_v2e(args.v2e), _load_baseline(args.baseline)
             w, h = sizes[-1]
             for theta in (0.5, 0.2):
-                bench_grating(w, h, theta, args.repeats, Emulator, baseline)
+                bench_grating(w, h, theta, args.repeats, Emulator, baseline,
+                              args.max_log_step, args.max_step)
         for w, h in sizes if args.only in (None, "core") else []:
             m = _median([bench_crossings(w, h) for _ in range(args.repeats)])
             log.info("crossings %dx%d: %.1f M events/s (%d events from %d samples, %.3f s)",
