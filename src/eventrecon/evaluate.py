@@ -218,7 +218,7 @@ def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False)
               (load_segment(cfg, props, run_dir / f"seg{k}", ckpt) for k in range(len(segments)))]
     views = list(range(heldout.n_views))
     frames = window_frames(heldout, window)
-    metrics = {**run_info(cfg, ds.meta), "checkpoint": ckpt,
+    metrics = {**run_info(cfg, ds.meta, data_id=Path(ds.root).name), "checkpoint": ckpt,
                **render_and_score(models, segments, heldout, views, frames,
                                   run_dir / f"eval_{ckpt}", cfg.render.chunk, color_correct)}
     name = "metrics_eval.json" if not color_correct else "metrics_eval_cc.json"
