@@ -43,7 +43,7 @@ from eventrecon.checkpointing import atomic_write_bytes, atomic_write_json
 from eventrecon.errors import InputError
 from eventrecon.naming import dataset_name, name_from_meta
 
-__all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "record_version", "same_data", "METRICS_FILE",
+__all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "record_version", "stale_reason", "METRICS_FILE",
            "CURVE_FILE", "DONE_FILE", "CURVE_HEADER", "REQUIRED_KEYS", "STATUSES", "run_info",
            "write_metrics", "read_metrics", "finished_metrics", "write_done", "read_done",
            "CurveLog", "read_curve_rows", "write_curve", "stitch_curves"]
@@ -79,7 +79,7 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
     tag and seed (``cfg`` is the run's composed config, ``meta`` the dataset's). The scene
     is the dataset's own name for a ``data.root`` run (:mod:`eventrecon.naming`);
     ``data_id`` the dataset folder's name (a simulated scene's carries the hash of its
-    spec, so a changed scene makes earlier records of it stale: :func:`same_data`)."""
+    spec, so a changed scene makes earlier records of it stale: :func:`stale_reason`)."""
     name = (dataset_name(cfg.data.root, None) if cfg.data.get("root")
             else name_from_meta(meta) or cfg.scene.get("name", "custom"))
     return {"scene": name,
@@ -134,15 +134,15 @@ def read_metrics(path: str | Path) -> dict[str, Any]:
 def finished_metrics(path: str | Path, max_steps: int, evaluate: bool,
                      steps: int | None = None, data_id: str | None = None) -> dict | None:
     """``metrics.json`` of the same finished run (status ok or collapsed, the same
-    ``max_steps`` and, when given, the same ``steps`` and data (:func:`same_data`); scored
-    if ``evaluate``), else ``None``."""
+    ``max_steps`` and, when given, the same ``steps``; made by this method on the dataset
+    ``data_id``, :func:`stale_reason`; scored if ``evaluate``), else ``None``."""
     path = Path(path)
     if not path.exists():
         return None
     done = json.loads(path.read_text())
     same = (done.get("status") in FINISHED and done.get("max_steps") == int(max_steps)
             and (steps is None or done.get("steps") == steps)
-            and record_version(done) == METHOD_VERSION and same_data(done, data_id))
+            and stale_reason(done, data_id) is None)
     return done if same and (not evaluate or done.get("psnr") is not None) else None
 
 
@@ -152,12 +152,20 @@ def record_version(record: Mapping[str, Any]) -> int:
     return int(record.get("method_version") or 1)
 
 
-def same_data(record: Mapping[str, Any], data_id: str | None) -> bool:
-    """Whether a record (``metrics.json``, ``done.json``, checkpoint meta) was made on the
-    dataset ``data_id``. A record that names no dataset predates the field and is taken
-    to match, as is any record when ``data_id`` is ``None`` (not known)."""
+def stale_reason(record: Mapping[str, Any], data_id: str | None) -> tuple[str, str] | None:
+    """Why a record (``metrics.json``, ``done.json``, checkpoint meta) is stale for a run of
+    this :data:`METHOD_VERSION` on the dataset ``data_id``: ``(tag, reason)``, e.g.
+    ``("method_v1", "trained by method version 1 (now 2)")`` or ``("data_<id>", "trained
+    on <id> (now <data_id>)")``; ``None`` if it is current. A record that names no dataset
+    predates the field and is taken to match, as is any record when ``data_id`` is
+    ``None`` (not known)."""
+    version = record_version(record)
+    if version != METHOD_VERSION:
+        return f"method_v{version}", f"trained by method version {version} (now {METHOD_VERSION})"
     made_on = record.get("data_id")
-    return data_id is None or made_on is None or made_on == data_id
+    if data_id is not None and made_on is not None and made_on != data_id:
+        return f"data_{made_on}", f"trained on {made_on} (now {data_id})"
+    return None
 
 
 # ---------------------------------------------------------------------------- done.json
@@ -175,14 +183,14 @@ def write_done(seg_dir: str | Path, max_steps: int, steps: int, wall_s: float,
 
 def read_done(seg_dir: str | Path, max_steps: int | None = None,
               current_method: bool = False, data_id: str | None = None) -> dict | None:
-    """The segment's ``done.json`` (trained with exactly ``max_steps`` when given, by this
-    :data:`METHOD_VERSION` if ``current_method`` and on the dataset ``data_id`` when given:
-    a sweep's "trained before"), else None."""
+    """The segment's ``done.json`` (trained with exactly ``max_steps`` when given, and, if
+    ``current_method``, by this :data:`METHOD_VERSION` on the dataset ``data_id``
+    (:func:`stale_reason`): a sweep's "trained before"), else None."""
     path = Path(seg_dir) / DONE_FILE
     if not path.exists():
         return None
     done = json.loads(path.read_text())
-    if (current_method and record_version(done) != METHOD_VERSION) or not same_data(done, data_id):
+    if current_method and stale_reason(done, data_id) is not None:
         return None
     return done if max_steps is None or int(done.get("max_steps", -1)) == max_steps else None
 

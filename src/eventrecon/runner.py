@@ -110,14 +110,7 @@ def _resume_checkpoint(cfg: DictConfig, seg_dir: Path, module: EventNeRFModule,
     if ckpt is None:
         return None
     info = inspect_checkpoint(ckpt, module.field)
-    version = records.record_version(info.meta)
-    stale = None
-    if version != records.METHOD_VERSION:
-        stale = (f"method_v{version}",
-                 f"trained by method version {version} (now {records.METHOD_VERSION})")
-    elif not records.same_data(info.meta, module.data_id):
-        stale = (f"data_{info.meta['data_id']}",
-                 f"trained on {info.meta['data_id']} (now {module.data_id})")
+    stale = records.stale_reason(info.meta, module.data_id)
     if cfg.ckpt_path == "last" and stale is not None:
         kept = Path(ckpt).with_name(f"last.{stale[0]}.ckpt")
         Path(ckpt).replace(kept)
