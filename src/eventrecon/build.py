@@ -183,6 +183,25 @@ def lr_end_factor(cfg: DictConfig) -> float:
     return f
 
 
+def lr_warmup(cfg: DictConfig) -> int:
+    """``trainer.lr_warmup``: steps of the linear lr warm-up (0: none, the authors' runs);
+    an :class:`InputError` unless it is an integer >= 0.
+
+    >>> lr_warmup(OmegaConf.create({"trainer": {"lr_warmup": 27}}))
+    27
+    >>> try:
+    ...     lr_warmup(OmegaConf.create({"trainer": {"lr_warmup": -1}}))
+    ... except InputError as e:
+    ...     print(e.field)
+    trainer.lr_warmup
+    """
+    value = cfg.trainer.get("lr_warmup", 0)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise InputError("config", "trainer.lr_warmup", "an integer number of steps >= 0",
+                         value)
+    return value
+
+
 def build_module(cfg: DictConfig, props: SceneProperties, train: SplitData | None,
                  seg: Segment, k: int = 0, device: str | torch.device = "cpu"
                  ) -> EventNeRFModule:
@@ -204,7 +223,7 @@ def build_module(cfg: DictConfig, props: SceneProperties, train: SplitData | Non
                       eps=float(optim.get("eps", 1e-8)),
                       max_nonfinite=cfg.trainer.max_nonfinite, log_every=cfg.trainer.log_every,
                       seed=cfg.seed + 1000 * k, max_steps=int(cfg.trainer.max_steps),
-                      lr_end_factor=lr_end_factor(cfg))
+                      lr_end_factor=lr_end_factor(cfg), lr_warmup=lr_warmup(cfg))
     renderer = build_renderer(cfg.render, props)
     field.set_scene_box(*renderer.cylinder.box())
     return EventNeRFModule(field, renderer, batcher, build_loss(cfg.loss, props), step)

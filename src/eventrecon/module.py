@@ -68,21 +68,29 @@ class StepConfig:
     seed: int = 0
     max_steps: int = 1
     lr_end_factor: float = 1.0
+    lr_warmup: int = 0
 
 
-def lr_factor(step: int, max_steps: int, end_factor: float) -> float:
-    r"""The learning-rate multiplier at ``step`` of a segment of ``max_steps`` steps,
-    :math:`f^{\,\min(s, S)/S}`: 1 at step 0, reaching ``end_factor`` at step ``S``
-    (exponential decay; ``end_factor = 1`` keeps the lr constant, as the authors do).
+def lr_factor(step: int, max_steps: int, end_factor: float, warmup: int = 0) -> float:
+    r"""The learning-rate multiplier at ``step`` of a segment of ``max_steps`` steps.
+
+    A linear warm-up over the first ``W = warmup`` steps times an exponential decay,
+    :math:`\min(1, s/W)\cdot f^{\,\min(s, S)/S}`: the decay is 1 at step 0 and reaches
+    ``end_factor = f`` at step ``S``. The warm-up is the authors' scheduler's ``it/4000``
+    (``use_lr_scheduler``, which their runs switch off); ``W = 0`` and ``f = 1`` keep the
+    lr constant, as their runs do.
 
     >>> [round(lr_factor(s, 100, 0.1), 4) for s in (0, 50, 100)]
     [1.0, 0.3162, 0.1]
     >>> lr_factor(7, 100, 1.0)
     1.0
+    >>> [lr_factor(s, 100, 1.0, warmup=4) for s in (0, 1, 3, 4, 50)]
+    [0.0, 0.25, 0.75, 1.0, 1.0]
     """
+    warm = min(1.0, step / warmup) if warmup > 0 else 1.0
     if end_factor == 1.0 or max_steps <= 0:
-        return 1.0
-    return float(end_factor ** (min(step, max_steps) / max_steps))
+        return float(warm)
+    return float(warm * end_factor ** (min(step, max_steps) / max_steps))
 
 
 def step_generator(seed: int, step: int, stream: int = 0) -> torch.Generator:
@@ -135,7 +143,8 @@ class EventNeRFModule(L.LightningModule):
     def configure_optimizers(self) -> torch.optim.Optimizer:
         """AdamW over the field's parameter groups (re-run by growth schedules). Each group
         keeps its own lr as ``base_lr``; :meth:`training_step` scales it by
-        :func:`lr_factor` (constant unless ``trainer.lr_end_factor < 1``)."""
+        :func:`lr_factor` (constant unless ``trainer.lr_end_factor < 1`` or
+        ``trainer.lr_warmup > 0``)."""
         cfg = self.step_cfg
         groups = self.field.param_groups(cfg.lr)
         for g in groups:
@@ -146,9 +155,9 @@ class EventNeRFModule(L.LightningModule):
     def _set_lr(self, step: int) -> None:
         """Every group's lr = its ``base_lr`` × :func:`lr_factor` at ``step``."""
         cfg = self.step_cfg
-        if cfg.lr_end_factor == 1.0:
+        if cfg.lr_end_factor == 1.0 and cfg.lr_warmup <= 0:
             return
-        f = lr_factor(step, cfg.max_steps, cfg.lr_end_factor)
+        f = lr_factor(step, cfg.max_steps, cfg.lr_end_factor, cfg.lr_warmup)
         for opt in self.trainer.optimizers:
             for g in opt.param_groups:
                 g["lr"] = g.get("base_lr", g["lr"]) * f

@@ -91,7 +91,8 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
             # what the run changed from the paper's method (the tables footnote it)
             "schedule": cfg.trainer.get("schedule"), "skip": cfg.render.get("skip"),
             "sizing": _sizing_choice(), "method_version": METHOD_VERSION,
-            "lr_end_factor": float(cfg.trainer.get("lr_end_factor", 1.0)), "data_id": data_id}
+            "lr_end_factor": float(cfg.trainer.get("lr_end_factor", 1.0)),
+            "lr_warmup": int(cfg.trainer.get("lr_warmup", 0)), "data_id": data_id}
 
 
 def _sizing_choice() -> str | None:

@@ -54,7 +54,9 @@ def format_summary(metrics: Mapping[str, Any], out_dir: str | Path) -> str:
                f"size conf/sizing/{metrics['sizing']}.yaml" if metrics.get("sizing") else "",
                "empty-space skipping" if metrics.get("skip") == "grid" else "",
                f"lr decayed to {metrics['lr_end_factor']:g}× by the last step"
-               if metrics.get("lr_end_factor") not in (None, 1.0) else ""]
+               if metrics.get("lr_end_factor") not in (None, 1.0) else "",
+               f"lr warmed up over {metrics['lr_warmup']} steps" if metrics.get("lr_warmup")
+               else ""]
     changed = [c for c in changed if c]
     subject = metrics.get("psnr_subject")
     rows = [

@@ -129,6 +129,12 @@ def method_notes(runs: Sequence[Run]) -> list[str]:
                      + ", ".join(f"{d:g}×" for d in decays)
                      + " of its start by the last step (trainer.lr_end_factor; the authors "
                        "keep it constant).")
+    warmups = sorted({int(r.record["lr_warmup"]) for r in runs if r.record.get("lr_warmup")})
+    if warmups:
+        notes.append("Learning rate warmed up linearly over the first "
+                     + ", ".join(str(w) for w in warmups)
+                     + " steps (trainer.lr_warmup: the authors' scheduler's it/4000, which "
+                       "their runs switch off).")
     versions = Counter(r.version for r in {r.path: r for r in runs}.values())
     if len(versions) > 1:
         notes.append("Runs of several method versions (records' method_version): " + "; ".join(
