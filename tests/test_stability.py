@@ -219,3 +219,19 @@ def test_diverging_run_stops_train_py_with_one_line(data_dir: Path, tmp_path: Pa
     assert len(errors) == 1 and "non-finite losses in a row" in errors[0]
     assert (run_dir / "seg0" / "checkpoints" / "nonfinite-stop.ckpt").is_file()
     assert not (run_dir / "metrics.json").exists()
+
+
+@pytest.mark.parametrize("native, expected", [(True, "bf16-mixed"), (False, "32-true")])
+def test_auto_precision_takes_bf16_only_on_a_cpu_with_native_bf16(
+        tmp_path: Path, monkeypatch, native: bool, expected: str):
+    import eventrecon.precision as precision
+    from eventrecon import records
+
+    monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda: native)
+    cfg = tiny_config(tmp_path)
+    assert cfg.trainer.lightning.precision == "auto"            # the default at trainer=cpu
+    trainer = runner._trainer(cfg, tmp_path / "seg0", [], 0)
+    assert trainer.precision == expected
+    assert records.run_info(cfg, {})["precision"] == expected    # the record names it
+    written = tiny_config(tmp_path, "trainer.lightning.precision=bf16-mixed")
+    assert runner._trainer(written, tmp_path / "seg1", [], 0).precision == "bf16-mixed"

@@ -55,6 +55,7 @@ def format_summary(metrics: Mapping[str, Any], out_dir: str | Path) -> str:
                "empty-space skipping" if metrics.get("skip") == "grid" else "",
                f"lr decayed to {metrics['lr_end_factor']:g}× by the last step"
                if metrics.get("lr_end_factor") not in (None, 1.0) else "",
+               "bf16 autocast" if metrics.get("precision") == "bf16-mixed" else "",
                f"lr warmed up over {metrics['lr_warmup']} steps" if metrics.get("lr_warmup")
                else ""]
     changed = [c for c in changed if c]

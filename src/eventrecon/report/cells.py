@@ -129,6 +129,12 @@ def method_notes(runs: Sequence[Run]) -> list[str]:
                      + ", ".join(f"{d:g}×" for d in decays)
                      + " of its start by the last step (trainer.lr_end_factor; the authors "
                        "keep it constant).")
+    precisions = Counter(r.record.get("precision") for r in runs if r.record.get("precision"))
+    if precisions.get("bf16-mixed"):
+        notes.append(f"bf16 autocast on the CPU in {precisions['bf16-mixed']} of "
+                     f"{sum(precisions.values())} runs that name their precision (the authors: "
+                     "fp16 AMP on GPUs; trainer.lightning.precision=auto takes it only on a "
+                     "CPU with native bf16).")
     warmups = sorted({int(r.record["lr_warmup"]) for r in runs if r.record.get("lr_warmup")})
     if warmups:
         notes.append("Learning rate warmed up linearly over the first "
