@@ -29,7 +29,7 @@ _GPU = ("gpu", "cuda")
 def cpu_has_native_bf16() -> bool:
     """Whether this CPU computes in bf16 natively (AVX512-BF16 or AMX tiles): torch's own
     probes where it has them, else the flags of ``/proc/cpuinfo``."""
-    import torch   # lazily: the records and the report do not need torch
+    import torch  # lazily: the records and the report do not need torch
 
     probes = [getattr(torch.cpu, name, None)
               for name in ("_is_avx512_bf16_supported", "_is_amx_tile_supported")]
