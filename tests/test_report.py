@@ -347,6 +347,24 @@ def test_row_differences_pair_the_full_model_with_each_tab3_row(tmp_path):
     assert "| NGP | **0.20 ± " in md and "| w/o L_acc | **3.50 ± " in md
 
 
+def test_findings_pair_only_runs_of_one_method_version(tmp_path):
+    from eventrecon.records import METHOD_VERSION
+    from eventrecon.report.findings import paired
+    from eventrecon.report.runs import current_runs
+
+    new, old = {"method_version": METHOD_VERSION}, {"method_version": None}
+    jobs = []
+    for seed in range(3):
+        # seeds 0, 1: both rows re-run at this version (full 1 dB above w/o L_event);
+        # seed 2: the full model re-run, w/o L_event still version 1 and 9 dB lower
+        jobs += [_metrics("spheres", psnr=25.0 + seed, seed=seed, experiment="table3", **new),
+                 _metrics("spheres", loss="no_event", psnr=(24.0 if seed < 2 else 18.0) + seed,
+                          seed=seed, experiment="table3", **(new if seed < 2 else old))]
+    runs = current_runs(collect_runs([_sweep(tmp_path, jobs).parent.parent]))
+    d, lost = paired(runs, lambda r: r.loss == "full", lambda r: r.loss == "no_event")
+    assert (d.n, lost) == (2, 0) and d.mean == pytest.approx(1.0)   # seed 2 is no pair
+
+
 def test_collapsed_cells_set_each_collapse_beside_the_papers_own_cell(tmp_path):
     from eventrecon.report.findings import collapsed_cells, collapsed_cells_markdown
 

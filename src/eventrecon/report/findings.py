@@ -1,8 +1,9 @@
 """The supplementary's qualitative claims, checked against our runs.
 
 Each claim is decided from *paired* differences between two settings over the (scene,
-seed) pairs where both runs were scored (collapsed and failed runs are left out and
-counted), with the 95 % interval of the mean difference (:mod:`.stats`):
+seed) pairs where both runs were scored with the same method version (collapsed and
+failed runs are left out and counted), with the 95 % interval of the mean difference
+(:mod:`.stats`):
 
 - **holds** when the interval lies on the claimed side of zero (for "barely matters":
   inside ``±tolerance``);
@@ -76,12 +77,15 @@ def _scored(runs: Sequence[Run], pick: Callable[[Run], bool]) -> dict[tuple, Run
 
 def paired(runs: Sequence[Run], a: Callable[[Run], bool], b: Callable[[Run], bool],
            metric: str = "psnr") -> tuple[MeanCI | None, int]:
-    """Mean ± interval of ``metric(a) − metric(b)`` over common (scene, seed) pairs, and
-    the number of runs of either side that were not scored (collapsed or failed)."""
+    """Mean ± interval of ``metric(a) − metric(b)`` over common (scene, seed) pairs made
+    with the same method version (a pair across versions would count the method's change
+    as the rows' difference), and the number of runs of either side that were not scored
+    (collapsed or failed)."""
     lost = sum(1 for r in runs if not r.ok and (a(r) or b(r)))
     ra, rb = _scored(runs, a), _scored(runs, b)
     diffs = [va - vb for k in ra.keys() & rb.keys()
-             if (va := ra[k].metric(metric)) is not None
+             if ra[k].version == rb[k].version
+             and (va := ra[k].metric(metric)) is not None
              and (vb := rb[k].metric(metric)) is not None]
     return (mean_ci(diffs) if diffs else None), lost
 
