@@ -212,8 +212,9 @@ def test_a_longer_trained_segment_is_not_silently_reused(data_dir: Path, tmp_pat
     assert longer["steps"] == 8  # resumed from step 6 and trained on
 
 
-def test_lr_decays_exponentially_to_the_end_factor(data_dir: Path):
-    cfg = tiny_config(data_dir, "trainer.max_steps=8", "trainer.lr_end_factor=0.1")
+def _lr_per_step(cfg) -> list[float]:
+    """The lr of the first parameter group after each step of a ``cfg.trainer.max_steps``
+    fit of a fresh module of ``cfg``."""
     ds = build.load_dataset(cfg)
     module = build.build_module(cfg, build.scene_properties(cfg, ds), ds.splits["train"],
                                 Segment(0, 1000))
@@ -223,39 +224,35 @@ def test_lr_decays_exponentially_to_the_end_factor(data_dir: Path):
         def on_train_batch_end(self, trainer, *_):
             seen.append(trainer.optimizers[0].param_groups[0]["lr"])
 
-    L.Trainer(max_steps=8, logger=False, enable_checkpointing=False, callbacks=[Probe()],
-              enable_progress_bar=False, enable_model_summary=False,
+    L.Trainer(max_steps=int(cfg.trainer.max_steps), logger=False, enable_checkpointing=False,
+              callbacks=[Probe()], enable_progress_bar=False, enable_model_summary=False,
               accelerator="cpu").fit(module)
+    return seen
+
+
+def test_lr_decays_exponentially_to_the_end_factor(data_dir: Path):
+    cfg = tiny_config(data_dir, "trainer.max_steps=8", "trainer.lr_end_factor=0.1")
     lr0 = float(cfg.model.optim.lr)
     # lr_s = lr0 · 0.1^(s / 8): 1× at the first step, 0.1^(7/8)× at the last of 8
-    assert seen == pytest.approx([lr0 * 0.1 ** (s / 8) for s in range(8)], rel=1e-9)
+    assert _lr_per_step(cfg) == pytest.approx([lr0 * 0.1 ** (s / 8) for s in range(8)],
+                                              rel=1e-9)
     with pytest.raises(InputError, match="trainer.lr_end_factor"):
         build.build_module(tiny_config(data_dir, "trainer.lr_end_factor=1.5"),
-                           build.scene_properties(cfg, ds), None, Segment(0, 1000))
+                           build.scene_properties(cfg, build.load_dataset(cfg)), None,
+                           Segment(0, 1000))
 
 
 def test_lr_warms_up_linearly_then_decays(data_dir: Path):
     cfg = tiny_config(data_dir, "trainer.max_steps=8", "trainer.lr_warmup=4",
                       "trainer.lr_end_factor=0.5")
-    ds = build.load_dataset(cfg)
-    module = build.build_module(cfg, build.scene_properties(cfg, ds), ds.splits["train"],
-                                Segment(0, 1000))
-    seen: list[float] = []
-
-    class Probe(L.Callback):
-        def on_train_batch_end(self, trainer, *_):
-            seen.append(trainer.optimizers[0].param_groups[0]["lr"])
-
-    L.Trainer(max_steps=8, logger=False, enable_checkpointing=False, callbacks=[Probe()],
-              enable_progress_bar=False, enable_model_summary=False,
-              accelerator="cpu").fit(module)
     lr0 = float(cfg.model.optim.lr)
     # lr_s = lr0 · min(1, s/4) · 0.5^(s/8): 0 at the first step (the authors' it/4000)
-    assert seen == pytest.approx([lr0 * min(1.0, s / 4) * 0.5 ** (s / 8) for s in range(8)],
-                                 rel=1e-9)
+    assert _lr_per_step(cfg) == pytest.approx(
+        [lr0 * min(1.0, s / 4) * 0.5 ** (s / 8) for s in range(8)], rel=1e-9)
     with pytest.raises(InputError, match="trainer.lr_warmup"):
         build.build_module(tiny_config(data_dir, "trainer.lr_warmup=2.5"),
-                           build.scene_properties(cfg, ds), None, Segment(0, 1000))
+                           build.scene_properties(cfg, build.load_dataset(cfg)), None,
+                           Segment(0, 1000))
 
 
 def test_a_segment_trained_by_an_older_method_version_trains_again(
