@@ -23,6 +23,7 @@
     python -m benchmarks sim [--repeats 3] [--quick] [--only grating|core|scene]
                              [--v2e DIR] [--baseline OLD_IDEAL_PY]
                              [--max-log-step 0.25] [--max-step 2e-3]   (the grating's core)
+                             [--engines compiled numpy]
 
 Medians over repeats, torch and numpy on one thread (run with ``OMP_NUM_THREADS=1``).
 """
@@ -182,31 +183,57 @@ def _load_baseline(path: str | None):
     return mod
 
 
+class _Timed:
+    """A signal that adds up the seconds spent inside it (``sec``) and its samples."""
+
+    def __init__(self, fn):
+        self.fn, self.sec, self.n = fn, 0.0, 0
+
+    def __call__(self, g: np.ndarray, t: np.ndarray) -> np.ndarray:
+        t0 = time.perf_counter()
+        out = self.fn(g, t)
+        self.sec += time.perf_counter() - t0
+        self.n += t.size
+        return out
+
+
 def _core(mod, signal, P: int, theta: float, max_log_step: float = 0.25,
-          max_step: float = 2e-3):
+          max_step: float = 2e-3, engine: str = "auto"):
+    """Run ``mod.run_core`` on ``signal``: ``(result, seconds, seconds inside the signal)``."""
     setup = mod.SignalSetup(np.full(P, theta), np.full(P, theta), np.full((P, 3), 1 / 3))
+    kw = {} if engine == "auto" else {"engine": engine}
+    timed = _Timed(signal)
     t0 = time.perf_counter()
-    res = mod.run_core(signal, np.arange(P), setup, mod.CoreSettings(theta, max_log_step,
-                                                                     max_step, 1e-6))
-    return res, time.perf_counter() - t0
+    res = mod.run_core(timed, np.arange(P), setup,
+                       mod.CoreSettings(theta, max_log_step, max_step, 1e-6, **kw))
+    return res, time.perf_counter() - t0, timed.sec
 
 
 def bench_grating(width: int, height: int, theta: float, repeats: int, Emulator=None,
-                  baseline=None, max_log_step: float = 0.25, max_step: float = 2e-3) -> None:
-    """Missed / extra / timestamp error and events/s of the core (``max_log_step``,
-    ``max_step``: the spec defaults unless given), frame-fed emission and (optionally)
-    v2e and a baseline core on the grating; logs one line each."""
+                  baseline=None, max_log_step: float = 0.25, max_step: float = 2e-3,
+                  engines: tuple[str, ...] = ("compiled", "numpy")) -> None:
+    """Missed / extra / timestamp error and events/s of the core's ``engines``
+    (``max_log_step``, ``max_step``: the spec defaults unless given; the time inside the
+    signal reported apart), frame-fed emission and (optionally) v2e and a baseline core on
+    the grating; logs one line each."""
     core_settings = {"max_log_step": max_log_step, "max_step": max_step}
     gr = Grating(width, height)
     truth = gr.truth(theta)
     tk = np.linspace(0.0, 1.0, 501)
     frames = np.stack([gr(np.arange(gr.P), np.full(gr.P, x)) for x in tk])
-    sec: dict = {"core": [], "frames": [], "v2e": [], "base": []}
+    names = [f"core:{e}" for e in engines]
+    sec: dict = {k: [] for k in (*names, "frames", "v2e", "base")}
+    sig: dict = {k: [] for k in names}
+    out: dict = {}
+    for e in engines:                              # compile (or load) numba's loops first
+        _core(ideal, Grating(8, 6), 48, theta, engine=e, **core_settings)
     for _ in range(repeats):                       # alternated, medians below
-        core, dt = _core(ideal, gr, gr.P, theta, **core_settings)
-        sec["core"].append(dt)
+        for e, name in zip(engines, names):
+            out[name], dt, ds = _core(ideal, gr, gr.P, theta, engine=e, **core_settings)
+            sec[name].append(dt)
+            sig[name].append(ds)
         if baseline is not None:
-            base, dt = _core(baseline, gr, gr.P, theta, **core_settings)
+            base, dt, _ = _core(baseline, gr, gr.P, theta, **core_settings)
             sec["base"].append(dt)
         t0 = time.perf_counter()
         ff = frame_events(frames, tk, theta, theta)
@@ -214,7 +241,8 @@ def bench_grating(width: int, height: int, theta: float, repeats: int, Emulator=
         if Emulator is not None:
             v2e = _v2e_run(Emulator, frames, tk * gr.T, theta, (height, width))
             sec["v2e"].append(v2e[3])
-    runs = [("core", (core.g, core.t, core.p)), ("frames", ff)]
+    runs = [(name, (out[name].g, out[name].t, out[name].p)) for name in names]
+    runs.append(("frames", ff))
     if baseline is not None:
         runs.append(("base", (base.g, base.t, base.p)))
     if Emulator is not None:
@@ -226,17 +254,31 @@ def bench_grating(width: int, height: int, theta: float, repeats: int, Emulator=
         m = match_events(g, t, p, truth, 2e-3 / gr.T)
         err = m["err"] * gr.T * 1e6
         med = statistics.median(sec[name])
-        log.info("  %-6s missed %.4f %% (%d), extra %d, |Δt| median %.3f µs p95 %.3f µs; "
-                 "%.2f M events/s (%d events, %.2f s)", name, 100 * m["missed"] / m["required"],
-                 m["missed"], m["extra"], np.median(err), np.percentile(err, 95),
-                 g.size / med / 1e6, g.size, med)
-    log.info("  core: %.2f samples/event (%d turn refinements), %d iterations",
-             core.n_samples / max(core.t.size, 1), core.extra["turn_samples"], core.iterations)
+        log.info("  %-13s missed %.4f %% (%d), extra %d, |Δt| median %.3f µs p95 %.3f µs; "
+                 "%.2f M events/s (%d events, %.2f s)", name,
+                 100 * m["missed"] / m["required"], m["missed"], m["extra"], np.median(err),
+                 np.percentile(err, 95), g.size / med / 1e6, g.size, med)
+    for name in names:
+        core, ds = out[name], statistics.median(sig[name])
+        rest = statistics.median(a - b for a, b in zip(sec[name], sig[name]))
+        log.info("  %s: %.2f samples/event (%d turn refinements), %d iterations; inside "
+                 "the signal %.2f s (%.1f ns/sample), the core's own work %.2f s "
+                 "(%.1f ns/sample)", name, core.n_samples / max(core.t.size, 1),
+                 core.extra["turn_samples"], core.iterations, ds,
+                 1e9 * ds / core.n_samples, rest, 1e9 * rest / core.n_samples)
+    if len(names) == 2:
+        same = all(np.array_equal(getattr(out[names[0]], f), getattr(out[names[1]], f))
+                   for f in "gtp")
+        ratio = statistics.median(b / a for a, b in zip(sec[names[0]], sec[names[1]]))
+        own = statistics.median((b - bs) / (a - as_) for a, as_, b, bs in
+                                zip(sec[names[0]], sig[names[0]], sec[names[1]], sig[names[1]]))
+        log.info("  %s / %s: identical events %s; speed-up %.2f in all, %.2f of the core's "
+                 "own work (alternated)", names[0], names[1], same, ratio, own)
     if Emulator is not None:
         ratio = statistics.median(v / f for v, f in zip(sec["v2e"], sec["frames"]))
         log.info("  frame-fed / v2e events/s: %.2f (same frames, alternated)", ratio)
     if baseline is not None:
-        ratio = statistics.median(b / c for b, c in zip(sec["base"], sec["core"]))
+        ratio = statistics.median(b / c for b, c in zip(sec["base"], sec[names[0]]))
         log.info("  core / baseline core speed: %.2f (alternated)", ratio)
 
 
@@ -266,10 +308,10 @@ def bench_core(width: int, height: int, max_log_step: float, baseline=None) -> d
     """The core on an analytic signal (no rendering): 4·sin(2π f t + φ) per pixel; with
     a ``baseline`` module, that one's core too (``base_sec``)."""
     P = width * height
-    res, sec = _core(ideal, _signal(P), P, 0.5, max_log_step)
+    res, sec, _ = _core(ideal, _signal(P), P, 0.5, max_log_step)
     out = {"events": res.t.size, "sec": sec, "samples": res.n_samples}
     if baseline is not None:
-        base, out["base_sec"] = _core(baseline, _signal(P), P, 0.5, max_log_step)
+        base, out["base_sec"], _ = _core(baseline, _signal(P), P, 0.5, max_log_step)
         out["base_events"] = base.t.size
     return out
 
@@ -313,6 +355,9 @@ def main(argv: list[str] | None = None) -> None:
                     help="the core's step bound in L, in units of θ, on the grating")
     ap.add_argument("--max-step", type=float, default=2e-3,
                     help="the core's longest step on the grating (normalised time)")
+    ap.add_argument("--engines", nargs="+", default=["compiled", "numpy"],
+                    choices=["auto", "compiled", "numpy"],
+                    help="the core's engines timed on the grating (alternated)")
     args = ap.parse_args(argv if argv is not None else [])
     sizes = [(96, 72)] + ([] if args.quick else [(346, 260)])
     with torch_threads(1):
@@ -321,7 +366,7 @@ def main(argv: list[str] | None = None) -> None:
             w, h = sizes[-1]
             for theta in (0.5, 0.2):
                 bench_grating(w, h, theta, args.repeats, Emulator, baseline,
-                              args.max_log_step, args.max_step)
+                              args.max_log_step, args.max_step, tuple(args.engines))
         for w, h in sizes if args.only in (None, "core") else []:
             m = _median([bench_crossings(w, h) for _ in range(args.repeats)])
             log.info("crossings %dx%d: %.1f M events/s (%d events from %d samples, %.3f s)",

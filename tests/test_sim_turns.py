@@ -135,3 +135,60 @@ def test_frame_events_equal_crossings_then_a_global_sort():
     np.testing.assert_array_equal(g, G[o])
     np.testing.assert_array_equal(t, T[o])
     np.testing.assert_array_equal(p, Pp[o])
+
+
+def _jumps(g, t):
+    """Steps of ``0.3 … 25`` in L four times (dozens of crossings on one leg) over a
+    slow sine: bisection down to ``min_step``, forced samples, turns between jumps."""
+    a = 0.3 + 2.5 * (g % 11)
+    return a * np.floor(4 * t) + 0.4 * np.sin(9 * t + g)
+
+
+def _graze(g, t):
+    """Peaks a hair above the level 0.5 (see the grazed-level test): turn refinement
+    that gains a crossing and re-emits the path."""
+    tp = 0.5 + 3e-4 * (g % 50)
+    return 0.501 * np.exp(-(((t - tp) / 0.05) ** 2))
+
+
+@pytest.mark.parametrize("case", ["grating 0.5", "grating 0.2", "jumps", "graze", "on≠off"])
+def test_compiled_engine_gives_the_numpy_engines_events_bit_for_bit(case):
+    pytest.importorskip("numba")
+    gr = SmallGrating()
+    P = gr.W * gr.H
+    sig, setup, s = gr, _setup(P, 0.5), CoreSettings(0.5, 0.25, 2e-3, 1e-6)
+    if case == "grating 0.2":
+        setup, s = _setup(P, 0.2), CoreSettings(0.2, 0.25, 2e-3, 1e-6)
+    elif case == "jumps":
+        sig, s = _jumps, CoreSettings(0.5, 0.25, 1e-2, 1e-7)
+    elif case == "graze":
+        sig, s = _graze, CoreSettings(0.5, 0.25, 0.02, 1e-7)
+    elif case == "on≠off":
+        rng = np.random.default_rng(3)
+        setup = SignalSetup(rng.uniform(0.2, 0.6, P), rng.uniform(0.2, 0.6, P),
+                            np.full((P, 3), 1 / 3))
+    s.engine = "numpy"
+    ref = run_core(sig, np.arange(P), setup, s)
+    s.engine = "compiled"
+    res = run_core(sig, np.arange(P), setup, s)
+    if case != "graze":                               # more than the first event chunk
+        assert ref.t.size > 4 * P + 1024
+    for f in "gtp":                                   # same events, same order, same bits
+        np.testing.assert_array_equal(getattr(res, f), getattr(ref, f))
+    assert (res.iterations, res.n_forced, res.extra) == (ref.iterations, ref.n_forced,
+                                                          ref.extra)
+    if case == "jumps":
+        assert res.n_forced > 0 and np.bincount(res.g).max() > 100
+    if case == "graze":                               # each peak found by refinement
+        assert res.t.size == P and res.extra["turn_samples"] > 0
+
+
+def test_an_unknown_or_unfit_engine_is_one_clear_error():
+    sig = SmallGrating()
+    with pytest.raises(ValueError, match="CoreSettings.engine.*'auto', 'numpy' or 'compiled'"
+                                         ".*'numba'"):
+        run_core(sig, np.arange(4), _setup(4, 0.5), CoreSettings(engine="numba"))
+    lowpass = _setup(4, 0.5)
+    lowpass.lowpass = lambda ya, ua, ub, dt: ub            # noqa: E731
+    with pytest.raises(ValueError, match="engine='compiled' needs .* no low-pass filter"):
+        run_core(sig, np.arange(4), lowpass, CoreSettings(engine="compiled"))

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from eventrecon.sim import compiled_core
 from eventrecon.sim.core_settings import CoreSettings, SignalSetup
 from eventrecon.sim.merge import merge_by_time, time_order
 from eventrecon.sim.paths import PathState, commit
@@ -280,6 +281,49 @@ def _calm(st: PathState, tol: float, max_step: float, block: int
     return np.flatnonzero(~calm), ci, np.where(j >= K, 1.0, j / K)
 
 
+def _compiled(s: CoreSettings, setup: SignalSetup, busy: np.ndarray | None,
+              record_samples: bool) -> bool:
+    """Whether :func:`run_core` runs the compiled engine (``settings.engine``)."""
+    if s.engine not in ("auto", "numpy", "compiled"):
+        raise ValueError(f"CoreSettings.engine: expected 'auto', 'numpy' or 'compiled', "
+                         f"got {s.engine!r}")
+    fits = (setup.lowpass is None and setup.redraw is None and busy is None
+            and not record_samples)
+    if s.engine == "compiled" and not (fits and compiled_core.AVAILABLE):
+        raise ValueError("CoreSettings.engine='compiled' needs numba and an ideal pixel: no "
+                         "low-pass filter, no re-drawn thresholds, no busy map, no recording")
+    return s.engine != "numpy" and fits and compiled_core.AVAILABLE
+
+
+def _run_numpy(signal: SignalFn, pix: np.ndarray, setup: SignalSetup, settings: CoreSettings,
+               busy: np.ndarray | None, record_samples: bool, stats: dict
+               ) -> tuple[list, list | None, int]:
+    """The numpy engine of :func:`run_core`: ``(event parts, recorded samples, iterations)``."""
+    L0 = signal(pix, np.zeros(pix.size)) if pix.size else np.zeros(0)
+    st = PathState(pix, L0, setup, settings, busy)
+    out: list = []
+    rec = [(pix.copy(), np.zeros(pix.size), L0.copy())] if record_samples else None
+    stats["n_samples"] += pix.size
+    tol = 1e-6 * settings.max_log_step * settings.threshold
+    it = 0
+    while st.pix.size:
+        it += 1
+        sel = slice(None)
+        if busy is not None:
+            sel, calm, t_next = _calm(st, tol, settings.max_step, settings.block)
+            if calm.size:
+                commit(signal, st, calm, t_next[None], st.Lr[2, calm][None],
+                       st.Lf[2, calm][None], np.zeros((1, calm.size)),
+                       np.ones(calm.size, np.int64), setup, settings, stats, out, rec)
+        if isinstance(sel, slice) or sel.size:
+            T, Lr, Lf, D, n_acc = _sample(signal, st, sel, setup, settings, stats)
+            commit(signal, st, sel, T, Lr, Lf, D, n_acc, setup, settings, stats, out, rec)
+        running = st.t[2] < 1.0
+        if not running.all():
+            st.keep(running)
+    return out, rec, it
+
+
 def run_core(signal: SignalFn, pix: np.ndarray, setup: SignalSetup, settings: CoreSettings,
              busy: np.ndarray | None = None, record_samples: bool = False) -> CoreResult:
     """Simulate the ideal(ised) event pixels ``pix [P]`` (global ids) over ``t ∈ [0, 1]``.
@@ -298,28 +342,12 @@ def run_core(signal: SignalFn, pix: np.ndarray, setup: SignalSetup, settings: Co
         :class:`CoreResult` with events sorted by time, ties by pixel.
     """
     pix = np.asarray(pix, dtype=np.int64)
-    L0 = signal(pix, np.zeros(pix.size)) if pix.size else np.zeros(0)
-    st = PathState(pix, L0, setup, settings, busy)
-    out: list = []
-    rec = [(pix.copy(), np.zeros(pix.size), L0.copy())] if record_samples else None
-    stats = {"n_samples": pix.size, "n_forced": 0, "turn_samples": 0}
-    tol = 1e-6 * settings.max_log_step * settings.threshold
-    it = 0
-    while st.pix.size:
-        it += 1
-        sel = slice(None)
-        if busy is not None:
-            sel, calm, t_next = _calm(st, tol, settings.max_step, settings.block)
-            if calm.size:
-                commit(signal, st, calm, t_next[None], st.Lr[2, calm][None],
-                       st.Lf[2, calm][None], np.zeros((1, calm.size)),
-                       np.ones(calm.size, np.int64), setup, settings, stats, out, rec)
-        if isinstance(sel, slice) or sel.size:
-            T, Lr, Lf, D, n_acc = _sample(signal, st, sel, setup, settings, stats)
-            commit(signal, st, sel, T, Lr, Lf, D, n_acc, setup, settings, stats, out, rec)
-        running = st.t[2] < 1.0
-        if not running.all():
-            st.keep(running)
+    stats = {"n_samples": 0, "n_forced": 0, "turn_samples": 0}
+    if _compiled(settings, setup, busy, record_samples):
+        out, it = compiled_core.run_compiled(signal, pix, setup, settings, stats)
+        rec = None
+    else:
+        out, rec, it = _run_numpy(signal, pix, setup, settings, busy, record_samples, stats)
     g, t, p = merge_by_time(out) if out else (np.zeros(0, np.int64), np.zeros(0),
                                               np.zeros(0, np.int8))
     samples = None

@@ -34,7 +34,7 @@ import numpy as np
 
 from eventrecon.sim.core_settings import CoreSettings, SignalSetup
 
-__all__ = ["PathState", "commit", "cross_times"]
+__all__ = ["PathState", "commit", "cross_times", "refine_turns"]
 
 
 class PathState:
@@ -114,8 +114,9 @@ def _turns(P: list, D: np.ndarray, length: np.ndarray, done: np.ndarray,
     return c[keep], i[keep], sig[keep], [[q[keep] for q in Q] for Q in tri]
 
 
-def _refine(signal: Callable, g: np.ndarray, sig: np.ndarray, tri: list, need: np.ndarray,
-            gap: np.ndarray | None, setup: SignalSetup, tol: float, stats: dict) -> np.ndarray:
+def refine_turns(signal: Callable, g: np.ndarray, sig: np.ndarray, tri: list,
+                 need: np.ndarray, gap: np.ndarray | None, setup: SignalSetup, tol: float,
+                 stats: dict) -> np.ndarray:
     """Successive parabolic interpolation of the turns ``need`` (two rounds at most),
     in place on ``tri`` (its middle point stays the best); ``gap`` (or ``None``: always)
     the distance to the next level: only turns that may reach it go on.
@@ -308,8 +309,8 @@ def commit(signal: Callable, st: PathState, sel, T: np.ndarray, Lr: np.ndarray,
     tol = 0.5 * s.turn_tol * s.threshold
     redo = i[:0]
     if setup.redraw is not None and c.size:      # levels unknown ahead: refine every turn
-        moved = _refine(signal, st.pix[ids[i]], sig, tri, np.ones(c.size, bool), None, setup,
-                        tol, stats)
+        moved = refine_turns(signal, st.pix[ids[i]], sig, tri, np.ones(c.size, bool), None,
+                             setup, tol, stats)
         redo = np.unique(i[moved])
         hot[redo] = False
     events, Rs = _emit(st, ids, np.flatnonzero(hot), P[1], length - 2 + done, setup.redraw,
@@ -319,8 +320,8 @@ def commit(signal: Callable, st: PathState, sel, T: np.ndarray, Lr: np.ndarray,
         r_at = np.where(hot[i], Rs[c, pos[i]] if hot.any() else 0.0, ref0[i])
         gap = sig * (np.where(sig > 0, r_at + on0[i], r_at - off0[i]) - tri[1][1])
         gap[np.bincount(i, minlength=n)[i] > 1] = -np.inf     # two turns: refine both
-        moved = _refine(signal, st.pix[ids[i]], sig, tri, np.ones(c.size, bool), gap, setup,
-                        tol, stats)
+        moved = refine_turns(signal, st.pix[ids[i]], sig, tri, np.ones(c.size, bool), gap,
+                             setup, tol, stats)
         redo = np.unique(i[moved & (gap <= 0)])  # those gained a crossing: emit them again
         if redo.size:
             drop = np.zeros(n, bool)

@@ -1,0 +1,469 @@
+"""The event core's per-pixel bookkeeping as compiled loops (numba).
+
+:func:`~eventrecon.sim.ideal.run_core` in numpy spends most of its time on bookkeeping,
+not on the signal: every iteration it moves blocks ``[M, N]`` of samples through dozens
+of whole-array operations (acceptance, step prediction, emission leg by leg, turn
+detection, crossing times). Here the same rules run as one loop per pixel, compiled, and
+the signal stays a vectorised numpy call. One iteration is
+
+1. :func:`_plan` -- each pixel's next block of sample times (``h, 2h, …`` or ``h, 2h,
+   4h, …``, clipped at ``t = 1``), flattened;
+2. ``signal(g, t)`` on all of them at once;
+3. :func:`_step` -- per pixel: the accepted prefix (``|ΔL| ≤ β`` and
+   ``|Δ²L| ≤ max_curvature·β``), the next step and block length, then the path
+   ``s_{−2}, s_{−1}, s_0, new samples`` and its smooth turns. A pixel with no turn that
+   may reach a level emits its crossings at once (:func:`_commit_path`); the others wait;
+4. for the waiting pixels, the vertex refinement of
+   :func:`eventrecon.sim.paths.refine_turns` (numpy: they are few), then :func:`_commit_turned`
+   emits each from its path with the refined points merged in where one gained a
+   crossing, from the original path otherwise.
+
+Every rule and every floating-point expression is the numpy core's
+(:mod:`eventrecon.sim.ideal`, :mod:`eventrecon.sim.paths`), so both give the same
+events bit for bit; ``tests/test_sim_core.py`` checks that. The compiled engine covers
+the ideal pixel: no low-pass filter, no re-drawn thresholds, no ``busy`` map and no
+sample recording. ``run_core`` falls back to numpy for the rest.
+
+numba compiles the loops on first use (a few seconds) and caches them next to this file.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from eventrecon.sim.paths import refine_turns
+
+try:
+    import numba
+except ImportError:                              # pragma: no cover - numba is a dependency
+    numba = None
+
+__all__ = ["AVAILABLE", "run_compiled"]
+
+#: Whether numba could be imported (the numpy core is used otherwise).
+AVAILABLE = numba is not None
+
+_TARGET = 0.95                                   # the numpy core's aimed-for fraction
+
+
+def _jit(fn):
+    if numba is None:                            # pragma: no cover
+        return fn
+    return numba.njit(cache=True, error_model="numpy", nogil=True)(fn)
+
+
+@_jit
+def _clip(x, lo, hi):
+    """``np.clip`` of a scalar (``NaN`` stays ``NaN``)."""
+    if x < lo:
+        return lo
+    if x > hi:
+        return hi
+    return x
+
+
+@_jit
+def _parabola(xa, ya, xb, yb, xc, yc):
+    """Vertex ``(x, y)`` and ``A`` of the parabola through three points (scalar form of
+    :func:`eventrecon.sim.paths._parabola`)."""
+    m1 = (yb - ya) / (xb - xa)
+    A = ((yc - yb) / (xc - xb) - m1) / (xc - xa)
+    x = _clip(0.5 * (xa + xb) - m1 / (2 * A), xa, xc)
+    return x, yb + m1 * (x - xb) + A * (x - xb) * (x - xa), A
+
+
+@_jit
+def _q(s, C2, C3, a, u):
+    return s + (s * (s - 1.0)) * (C2 + C3 * (s - a)) - u
+
+
+@_jit
+def _cross_time(pt, pL, c, length, level):
+    """Time where the path ``pt, pL`` (``length`` points) meets ``level`` on the leg
+    ``c → c+1``: the cubic through points ``c−1 … c+2`` (scalar form of
+    :func:`eventrecon.sim.paths.cross_times`; a point beyond the path repeats the last)."""
+    d = c + 2 if c + 2 < length else length - 1
+    x0, x1, x2, x3 = pt[c - 1], pt[c], pt[c + 1], pt[d]
+    y0, y1, y2, y3 = pL[c - 1], pL[c], pL[c + 1], pL[d]
+    h, D = x2 - x1, y2 - y1
+    u = (level - y1) / D
+    a, b = (x0 - x1) / h, (x3 - x1) / h
+    left, right = a < 0, b > 1
+    c2l = (1.0 + (y1 - y0) / (a * D)) / (1.0 - a)
+    c2r = ((y3 - y2) / ((b - 1.0) * D) - 1.0) / b
+    C3 = (c2r - c2l) / (b - a) if (left and right) else 0.0
+    C2 = c2l if left else (c2r if right else 0.0)
+    if not left:
+        a = 0.0
+    s1 = u * (u - 1.0)
+    dq = 1.0 + C2 * (2 * u - 1.0) + C3 * ((2 * u - 1.0) * (u - a) + s1)
+    s = u - _q(u, C2, C3, a, u) / dq
+    if not ((s >= 0.0) and (s <= 1.0) and (dq > 0) and (abs(s - u) < 0.1)):
+        k = 0                                    # not monotone: first sign change on a
+        for j in range(33):                      # grid, then regula falsi
+            if _q(j / 32, C2, C3, a, u) >= 0:
+                k = j
+                break
+        k = max(k, 1)
+        lo, hi = (k - 1) / 32, k / 32
+        qlo, qhi = _q(lo, C2, C3, a, u), _q(hi, C2, C3, a, u)
+        for _ in range(4):
+            mid = _clip(lo - qlo * (hi - lo) / (qhi - qlo), lo, hi)
+            qm = _q(mid, C2, C3, a, u)
+            if qm >= 0:
+                hi, qhi = mid, qm
+            else:
+                lo, qlo = mid, qm
+        s = hi if math.isfinite(hi) else _clip(u, 0.0, 1.0)
+    return x1 + s * h
+
+
+@_jit
+def _room(pL, length, th):
+    """At most how many crossings a path of ``length`` points emits (``th`` the smaller
+    threshold): ``Σ ⌊|ΔL|/th⌋ + 1`` over its legs, bounded by ``Σ |ΔL|/th + legs``."""
+    total = 0.0
+    for c in range(length - 1):
+        total += abs(pL[c + 1] - pL[c])
+    return int(total / th) + length + 1
+
+
+@_jit
+def _commit_path(pt, pL, length, done, i, gid, st_t, st_L, ref, on, off, bg, bt, bp, n):
+    """Emit the crossings of the legs ``c → c+1``, ``1 ≤ c < length − 2 + done``, of one
+    pixel's path (the last leg waits for its right neighbour unless the path ends) into
+    ``bg, bt, bp`` from ``n`` on (room for :func:`_room` events is the caller's), time
+    them, update the pixel's reference level and keep the last three points as its state.
+    Returns the new ``n``."""
+    r, th_on, th_off = ref[i], on[i], off[i]
+    hi, lo = r + th_on, r - th_off
+    for c in range(1, length - 2 + done):
+        Lb = pL[c + 1]
+        while Lb >= hi or Lb <= lo:              # ref − θ_off < L < ref + θ_on after
+            up = Lb >= hi
+            r = hi if up else lo
+            bg[n], bt[n], bp[n] = gid, _cross_time(pt, pL, c, length, r), 1 if up else -1
+            n += 1
+            hi, lo = r + th_on, r - th_off
+    ref[i] = r
+    for k in range(3):
+        st_t[i, k], st_L[i, k] = pt[length - 3 + k], pL[length - 3 + k]
+    return n
+
+
+@_jit
+def _plan(t_last, h, grow, m, M, max_step):
+    """Sample times of each pixel's next block, flattened.
+
+    Pixel ``i`` samples ``t_i + h_i·(1, 2, …, M)``, or after an easy block the partial sums
+    of ``min(2^k·h_i, max_step)``; times from ``1 − 1e-12`` on are 1 and end the block,
+    which holds at most ``m_i`` samples. Returns ``(T [Σ n], start [N + 1], n_valid [N],
+    odd [N])``: pixel ``i`` samples ``T[start[i]:start[i+1]]``; ``odd`` marks unequal
+    steps."""
+    N = h.size
+    n_valid = np.empty(N, np.int64)
+    odd = np.empty(N, np.bool_)
+    start = np.zeros(N + 1, np.int64)
+    Tb = np.empty((N, M))
+    for i in range(N):
+        t0, h0, s, first_end = t_last[i], h[i], 0.0, M
+        for k in range(M):
+            if grow[i]:
+                s += min(2.0 ** k * h0, max_step)
+                Tb[i, k] = t0 + s
+            else:
+                Tb[i, k] = t0 + (k + 1.0) * h0
+            if Tb[i, k] >= 1.0 - 1e-12:
+                Tb[i, k] = 1.0
+                first_end = min(first_end, k)
+        odd[i] = grow[i] or m[i] < M or first_end < M
+        n_valid[i] = min(m[i], first_end + 1)
+        start[i + 1] = start[i] + n_valid[i]
+    T = np.empty(start[N])
+    for i in range(N):
+        T[start[i]:start[i + 1]] = Tb[i, :n_valid[i]]
+    return T, start, n_valid, odd
+
+
+@_jit
+def _turn(pt, pL, c, bound, tol_over):
+    """The turn at sample ``c`` of a path, if smooth and reaching more than ``tol_over``
+    beyond ``L(s_c)``: ``(keep, sig)`` (the conditions of
+    :func:`eventrecon.sim.paths._turns`)."""
+    sig = 1.0 if pL[c] > pL[c - 1] else -1.0
+    xa, xb, xc = pt[c - 1], pt[c], pt[c + 1]
+    ya, yb, yc = pL[c - 1], pL[c], pL[c + 1]
+    _, yv, A = _parabola(xa, ya, xb, yb, xc, yc)
+    over = sig * (yv - yb)
+    keep = ((xa < xb) and (xb < xc) and (sig * A < 0) and (over > tol_over)
+            and (abs(A) * (xc - xa) * (xc - xb) <= 2 * bound))
+    return keep, sig
+
+
+@_jit
+def _step(i0, T, start, n_valid, odd, L, pix, st_t, st_L, h, m, brk, grow, slope, ref, on,
+          off, M, threshold, max_log_step, min_step, max_step, max_curvature, turn_tol,
+          Wt, WL, wlen, wdone, tr_i, tr_c, tr_sig, tr_gap, n_turns, bg, bt, bp, n):
+    """Accept, choose the next step and commit the pixels ``i0, i0 + 1, …`` (module
+    docstring, step 3), their events into ``bg, bt, bp`` from ``n`` on.
+
+    A pixel with smooth turns of which one may reach a level is not committed: its path
+    goes to ``Wt, WL`` (``[N, M + 3]``; ``wlen``, ``wdone``) and its turns to ``tr_*``
+    from ``n_turns`` on. Stops before a pixel whose events might not fit.
+
+    Returns ``(next pixel, n, n_turns, n_forced)``; all done when the first is ``N``."""
+    N = h.size
+    bound = max_log_step * threshold
+    tol = 0.5 * turn_tol * threshold
+    cbound = max_curvature * max_log_step * threshold
+    R = np.empty(M)
+    D = np.empty(M)
+    pt = np.empty(M + 3)
+    pL = np.empty(M + 3)
+    ct = np.empty(M + 2, np.int64)
+    cs = np.empty(M + 2)
+    n_forced = 0
+    for i in range(i0, N):
+        s0, nv, t0, h0 = start[i], n_valid[i], st_t[i, 2], h[i]
+        prev = st_L[i, 2]
+        # ---- acceptance: R = max(|ΔL|, |Δ²L|/max_curvature) ≤ β
+        var = abs(prev - st_L[i, 1])
+        for k in range(nv):
+            D[k] = L[s0 + k] - (prev if k == 0 else L[s0 + k - 1])
+            var += abs(D[k])
+        if n + int(var / min(on[i], off[i])) + nv + 3 > bg.size:
+            return i, n, n_turns, n_forced      # the caller makes room
+        Rmax = 0.0
+        n_acc, n_rej = nv, 0
+        for k in range(nv):
+            if k == 0:
+                r = D[0] - slope[i] * (T[s0] - t0)
+            elif odd[i]:
+                dT1 = T[s0 + k] - T[s0 + k - 1]
+                dT0 = T[s0 + k - 1] - (t0 if k == 1 else T[s0 + k - 2])
+                r = D[k] - D[k - 1] * (dT1 / dT0)
+            else:
+                r = D[k] - D[k - 1]
+            r = abs(r)
+            if max_curvature != 1.0:
+                r *= 1.0 / max_curvature
+            if not (r >= abs(D[k])):             # np.fmax: NaN gives way
+                r = abs(D[k])
+            R[k] = r
+            Rmax = max(Rmax, r)
+            if r > bound:
+                n_rej += 1
+                if n_acc == nv:
+                    n_acc = k
+        forced = h0 <= min_step * (1 + 1e-9)
+        if forced:
+            n_forced += n_rej
+            n_acc = nv
+        # ---- the next step (``_sample`` in the numpy core)
+        rej = n_acc < nv
+        kl = max(n_acc - 1, 0)
+        k = n_acc if rej else kl
+        hk = T[s0 + k] - (t0 if k == 0 else T[s0 + k - 1])
+        hl = T[s0 + kl] - (t0 if kl == 0 else T[s0 + kl - 1])
+        Dk, Rk = D[k], R[k]
+        Ek = Dk - (slope[i] * hk if k == 0 else D[k - 1])
+        a = max(abs(Dk + Ek), abs(Dk + M * Ek))
+        if math.isnan(a):
+            a = Rk
+        pred = max(a, Rk) / bound
+        if rej:
+            f = _clip(_TARGET * bound / Rk, 0.1, 0.7)
+        else:
+            f = _clip(_TARGET / pred, 0.5, 2.0)
+        new_slope = np.nan if R[kl] > bound else D[kl] / hl
+        b = (not forced) and (Rk > 4 * bound if rej else brk[i])
+        hn = _clip(hk * (0.5 if b else f), min_step, max_step)
+        h[i], brk[i] = hn, b
+        if b:
+            m[i] = 1
+        elif rej:
+            m[i] = min(max(n_acc + 1, 2), M)
+        else:
+            m[i] = min(2 * nv, M)
+        grow[i] = (not rej) and f >= 2.0 and Rmax <= 0.5 * bound and hn < max_step
+        if n_acc == 0:
+            continue
+        slope[i] = new_slope
+        # ---- the path s_{−2}, s_{−1}, s_0, accepted samples; its smooth turns
+        for k in range(3):
+            pt[k], pL[k] = st_t[i, k], st_L[i, k]
+        for k in range(n_acc):
+            pt[3 + k], pL[3 + k] = T[s0 + k], L[s0 + k]
+        length = n_acc + 3
+        done = 1 if pt[length - 1] >= 1.0 else 0
+        nt = 0
+        for c in range(2, length - 1):
+            if (pL[c] - pL[c - 1]) * (pL[c + 1] - pL[c]) < 0:
+                keep, sg = _turn(pt, pL, c, cbound, tol)
+                if keep:
+                    ct[nt], cs[nt] = c, sg
+                    nt += 1
+        if done and length >= 5:                 # the last leg of an ending path
+            c = length - 2
+            if (pL[c] - pL[c - 1]) * (pL[c + 1] - pL[c]) > 0:
+                keep, sg = _turn(pt, pL, c, cbound, tol)
+                if keep:
+                    ct[nt], cs[nt] = c, sg
+                    nt += 1
+        wait = False
+        if nt:
+            # the reference level at each turn (emission without timing) and the distance
+            # from the turn to its next level; two turns in a path are both refined
+            for j in range(nt):
+                c, sg = ct[j], cs[j]
+                r, th_on, th_off = ref[i], on[i], off[i]
+                for cc in range(1, c):
+                    Lb = pL[cc + 1]
+                    while Lb >= r + th_on:
+                        r += th_on
+                    while Lb <= r - th_off:
+                        r -= th_off
+                gap = -np.inf if nt > 1 else sg * ((r + th_on if sg > 0 else r - th_off)
+                                                    - pL[c])
+                xv, yv, A = _parabola(pt[c - 1], pL[c - 1], pt[c], pL[c], pt[c + 1],
+                                      pL[c + 1])
+                over = sg * (yv - pL[c])
+                wait |= ((sg * A < 0) and (over > tol) and (pt[c - 1] < xv)
+                         and (xv < pt[c + 1]) and (xv != pt[c])
+                         and (gap <= 2 * over + 2 * tol))
+                tr_i[n_turns + j], tr_c[n_turns + j] = i, c
+                tr_sig[n_turns + j], tr_gap[n_turns + j] = sg, gap
+            if wait:                             # refined by the caller
+                n_turns += nt
+                Wt[i, :length], WL[i, :length] = pt[:length], pL[:length]
+                wlen[i], wdone[i] = length, done
+        if not wait:
+            n = _commit_path(pt, pL, length, done, i, pix[i], st_t, st_L, ref, on, off, bg, bt,
+                             bp, n)
+    return N, n, n_turns, n_forced
+
+
+@_jit
+def _commit_turned(a, tr_i, tr_tb, tr_Lb, tr_moved, tr_gap, Wt, WL, wlen, wdone, pix, st_t,
+                   st_L, ref, on, off, bg, bt, bp, n):
+    """Commit the pixels whose turns were refined (turns grouped by pixel, from turn ``a``
+    on): with the best points of their moved turns merged into the path in time order
+    (ties after the path's own point) where one of them gained a crossing (``moved`` and
+    ``gap ≤ 0``), from the original path otherwise. Stops before a pixel whose events
+    might not fit. Returns ``(next turn, n)``; all done when the first is ``len(tr_i)``."""
+    K = tr_i.size
+    pt, pL = np.empty(Wt.shape[1] + K), np.empty(Wt.shape[1] + K)
+    xt, xL = np.empty(K), np.empty(K)
+    while a < K:
+        i, e, redo = tr_i[a], a, False
+        while e < K and tr_i[e] == i:
+            redo |= tr_moved[e] and tr_gap[e] <= 0
+            e += 1
+        length, nx = wlen[i], 0
+        for j in range(a, e):                    # the moved points, stably by time
+            if redo and tr_moved[j]:
+                k = nx
+                while k > 0 and xt[k - 1] > tr_tb[j]:
+                    xt[k], xL[k] = xt[k - 1], xL[k - 1]
+                    k -= 1
+                xt[k], xL[k] = tr_tb[j], tr_Lb[j]
+                nx += 1
+        m, c, k = 0, 0, 0                        # merged with the path
+        while c < length or k < nx:
+            if k == nx or (c < length and Wt[i, c] <= xt[k]):
+                pt[m], pL[m] = Wt[i, c], WL[i, c]
+                c += 1
+            else:
+                pt[m], pL[m] = xt[k], xL[k]
+                k += 1
+            m += 1
+        if n + _room(pL, m, min(on[i], off[i])) > bg.size:
+            return a, n
+        n = _commit_path(pt, pL, m, wdone[i], i, pix[i], st_t, st_L, ref, on, off, bg, bt, bp,
+                         n)
+        a = e
+    return K, n
+
+
+def run_compiled(signal: Callable, pix: np.ndarray, setup, s, stats: dict
+                 ) -> tuple[list[tuple[np.ndarray, np.ndarray, np.ndarray]], int]:
+    """The ideal-pixel event core, compiled (module docstring).
+
+    Args:
+        signal: ``signal(g [N] int64, t [N] float64) -> L [N] float64``.
+        pix: ``[P]`` int64 global pixel ids.
+        setup: :class:`~eventrecon.sim.core_settings.SignalSetup` without ``lowpass`` and
+            ``redraw``.
+        s: :class:`~eventrecon.sim.core_settings.CoreSettings`.
+        stats: ``n_samples``, ``n_forced``, ``turn_samples`` (added to).
+
+    Returns:
+        ``(parts, iterations)``: the events as chunks ``(g, t, p)``, each pixel's in time
+        order (not merged across pixels).
+    """
+    P, M = pix.size, s.block
+    L0 = signal(pix, np.zeros(P)) if P else np.zeros(0)
+    stats["n_samples"] += P
+    st_t, st_L = np.zeros((P, 3)), np.repeat(L0[:, None], 3, 1)
+    h, m = np.full(P, s.max_step), np.full(P, M, np.int64)
+    brk, grow = np.zeros(P, bool), np.zeros(P, bool)
+    slope, ref = np.full(P, np.nan), L0.copy()
+    on = setup.theta_on[pix].astype(np.float64)
+    off = setup.theta_off[pix].astype(np.float64)
+    Wt, WL = np.empty((P, M + 3)), np.empty((P, M + 3))      # paths waiting for turns
+    wlen, wdone = np.zeros(P, np.int64), np.zeros(P, np.int64)
+    K_max = P * (M + 1)                          # at most n_acc + 1 turns per path
+    tr = (np.empty(K_max, np.int64), np.empty(K_max, np.int64), np.empty(K_max),
+          np.empty(K_max))
+    parts: list = []                             # full event chunks
+    cap = 4 * P + 1024
+
+    def chunk(n: int) -> tuple:                  # a new chunk, the full one kept as is
+        nonlocal cap
+        if n:
+            parts.append(tuple(x[:n] for x in ev))
+            cap *= 2
+        return np.empty(cap, np.int64), np.empty(cap), np.empty(cap, np.int8)
+
+    ev, n = chunk(0), 0
+    tol = 0.5 * s.turn_tol * s.threshold
+    it = 0
+
+    while pix.size:
+        it += 1
+        T, start, n_valid, odd = _plan(st_t[:, 2], h, grow, m, M, s.max_step)
+        L = signal(np.repeat(pix, n_valid), T)
+        stats["n_samples"] += T.size
+        i, K = 0, 0
+        while True:
+            i, n, K, n_forced = _step(i, T, start, n_valid, odd, L, pix, st_t, st_L, h, m,
+                                      brk, grow, slope, ref, on, off, M, s.threshold,
+                                      s.max_log_step, s.min_step, s.max_step, s.max_curvature,
+                                      s.turn_tol, Wt, WL, wlen, wdone, *tr, K, *ev, n)
+            stats["n_forced"] += n_forced
+            if i == pix.size:
+                break
+            ev, n = chunk(n), 0
+        if K:                                    # refine the waiting turns (numpy, few)
+            ti, tc, tsig, tgap = (x[:K].copy() for x in tr)
+            tri = [[Wt[ti, tc + o] for o in (-1, 0, 1)], [WL[ti, tc + o] for o in (-1, 0, 1)]]
+            tri.append([q.copy() for q in tri[1]])
+            moved = refine_turns(signal, pix[ti], tsig, tri, np.ones(K, bool), tgap, setup,
+                                 tol, stats)
+            a = 0
+            while True:
+                a, n = _commit_turned(a, ti, tri[0][1], tri[1][1], moved, tgap, Wt, WL, wlen,
+                                      wdone, pix, st_t, st_L, ref, on, off, *ev, n)
+                if a == K:
+                    break
+                ev, n = chunk(n), 0
+        running = st_t[:, 2] < 1.0
+        if not running.all():
+            keep = np.flatnonzero(running)
+            pix, st_t, st_L, h, m, brk, grow, slope, ref, on, off = (
+                x[keep] for x in (pix, st_t, st_L, h, m, brk, grow, slope, ref, on, off))
+    parts.append(tuple(x[:n] for x in ev))
+    return parts, it
