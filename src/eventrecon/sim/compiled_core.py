@@ -49,13 +49,21 @@ AVAILABLE = numba is not None
 _TARGET = 0.95                                   # the numpy core's aimed-for fraction
 
 
-def _jit(fn):
+def _jit(fn, inline: bool = False):
+    """numba's ``njit`` (cached; division as numpy does it: inf/NaN, no exception);
+    ``inline`` at the call sites (per-event helpers: a call per event costs more than
+    the work)."""
     if numba is None:                            # pragma: no cover
         return fn
-    return numba.njit(cache=True, error_model="numpy", nogil=True)(fn)
+    return numba.njit(cache=True, error_model="numpy", nogil=True,
+                      inline="always" if inline else "never")(fn)
 
 
-@_jit
+def _inline(fn):
+    return _jit(fn, inline=True)
+
+
+@_inline
 def _clip(x, lo, hi):
     """``np.clip`` of a scalar (``NaN`` stays ``NaN``)."""
     if x < lo:
@@ -75,12 +83,12 @@ def _parabola(xa, ya, xb, yb, xc, yc):
     return x, yb + m1 * (x - xb) + A * (x - xb) * (x - xa), A
 
 
-@_jit
+@_inline
 def _q(s, C2, C3, a, u):
     return s + (s * (s - 1.0)) * (C2 + C3 * (s - a)) - u
 
 
-@_jit
+@_inline
 def _cross_time(pt, pL, c, length, level):
     """Time where the path ``pt, pL`` (``length`` points) meets ``level`` on the leg
     ``c → c+1``: the cubic through points ``c−1 … c+2`` (scalar form of
@@ -131,7 +139,7 @@ def _room(pL, length, th):
     return int(total / th) + length + 1
 
 
-@_jit
+@_inline
 def _commit_path(pt, pL, length, done, i, gid, st_t, st_L, ref, on, off, bg, bt, bp, n):
     """Emit the crossings of the legs ``c → c+1``, ``1 ≤ c < length − 2 + done``, of one
     pixel's path (the last leg waits for its right neighbour unless the path ends) into
@@ -158,34 +166,34 @@ def _commit_path(pt, pL, length, done, i, gid, st_t, st_L, ref, on, off, bg, bt,
 def _plan(t_last, h, grow, m, M, max_step):
     """Sample times of each pixel's next block, flattened.
 
-    Pixel ``i`` samples ``t_i + h_i·(1, 2, …, M)``, or after an easy block the partial sums
-    of ``min(2^k·h_i, max_step)``; times from ``1 − 1e-12`` on are 1 and end the block,
-    which holds at most ``m_i`` samples. Returns ``(T [Σ n], start [N + 1], n_valid [N],
-    odd [N])``: pixel ``i`` samples ``T[start[i]:start[i+1]]``; ``odd`` marks unequal
-    steps."""
+    Pixel ``i`` samples ``t_i + h_i·(1, 2, …)``, or after an easy block the partial sums
+    of ``min(2^k·h_i, max_step)``, at most ``m_i`` of them; a time from ``1 − 1e-12`` on
+    is 1 and ends the block. Returns ``(T [Σ n], start [N + 1], n_valid [N], odd [N])``:
+    pixel ``i`` samples ``T[start[i]:start[i+1]]``; ``odd`` marks unequal steps."""
     N = h.size
     n_valid = np.empty(N, np.int64)
     odd = np.empty(N, np.bool_)
     start = np.zeros(N + 1, np.int64)
-    Tb = np.empty((N, M))
+    T = np.empty(N * M)
+    j = 0
     for i in range(N):
-        t0, h0, s, first_end = t_last[i], h[i], 0.0, M
-        for k in range(M):
+        t0, h0, s, p2, ended, k = t_last[i], h[i], 0.0, 1.0, False, 0
+        while k < m[i] and not ended:
             if grow[i]:
-                s += min(2.0 ** k * h0, max_step)
-                Tb[i, k] = t0 + s
+                s += min(p2 * h0, max_step)
+                p2 *= 2.0
+                t = t0 + s
             else:
-                Tb[i, k] = t0 + (k + 1.0) * h0
-            if Tb[i, k] >= 1.0 - 1e-12:
-                Tb[i, k] = 1.0
-                first_end = min(first_end, k)
-        odd[i] = grow[i] or m[i] < M or first_end < M
-        n_valid[i] = min(m[i], first_end + 1)
-        start[i + 1] = start[i] + n_valid[i]
-    T = np.empty(start[N])
-    for i in range(N):
-        T[start[i]:start[i + 1]] = Tb[i, :n_valid[i]]
-    return T, start, n_valid, odd
+                t = t0 + (k + 1.0) * h0
+            if t >= 1.0 - 1e-12:
+                t, ended = 1.0, True
+            T[j] = t
+            j += 1
+            k += 1
+        n_valid[i] = k
+        odd[i] = grow[i] or m[i] < M or ended
+        start[i + 1] = j
+    return T[:j], start, n_valid, odd
 
 
 @_jit
