@@ -24,6 +24,12 @@ their crossings are stamped within ``min_step`` of the jump.
 interpolation, evaluated) whenever a level lies within reach, and a level the true
 signal passes by more than about ``turn_tol·θ`` is crossed (:mod:`~eventrecon.sim.paths`).
 
+**Engines.** The same rules run in numpy (whole-array passes over blocks ``[M, N]``,
+:mod:`~eventrecon.sim.paths`) or, for the ideal pixel (no low-pass filter, no re-drawn
+thresholds, no ``busy`` map), as compiled per-pixel loops
+(:mod:`~eventrecon.sim.compiled_core`, numba), which give the same events bit for bit;
+``CoreSettings.engine`` chooses (``auto``: compiled where it applies).
+
 **Order.** Each pixel's events come in time order; the events of all pixels are put in
 ``(t, g)`` order by counting sorts (:func:`~eventrecon.sim.merge.merge_by_time`), the
 result equal to a global ``lexsort``. :func:`frame_events` is the frame-fed counterpart:
@@ -58,7 +64,8 @@ class CoreResult:
     Attributes:
         g: ``[E]`` int64 global pixel; t: ``[E]`` float64 normalised time; p: ``[E]`` int8.
         n_samples: rendered pixel samples (accepted + rejected + turn refinements,
-            including ``t = 0``).
+            including ``t = 0``; the numpy engine also counts the repeated last sample
+            of a block cut short, which it evaluates again, the compiled one does not).
         n_forced: samples accepted at ``min_step`` above the bounds (discontinuities).
         samples: if requested, ``(g, t, L)`` of every path sample (filtered signal).
         extra: ``turn_samples`` (refinement evaluations) and what callers add.
