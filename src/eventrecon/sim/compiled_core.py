@@ -34,36 +34,15 @@ from collections.abc import Callable
 
 import numpy as np
 
+from eventrecon.sim.jit import AVAILABLE, njit, njit_inline
 from eventrecon.sim.paths import refine_turns
 
-try:
-    import numba
-except ImportError:                              # pragma: no cover - numba is a dependency
-    numba = None
-
 __all__ = ["AVAILABLE", "run_compiled"]
-
-#: Whether numba could be imported (the numpy core is used otherwise).
-AVAILABLE = numba is not None
 
 _TARGET = 0.95                                   # the numpy core's aimed-for fraction
 
 
-def _jit(fn, inline: bool = False):
-    """numba's ``njit`` (cached; division as numpy does it: inf/NaN, no exception);
-    ``inline`` at the call sites (per-event helpers: a call per event costs more than
-    the work)."""
-    if numba is None:                            # pragma: no cover
-        return fn
-    return numba.njit(cache=True, error_model="numpy", nogil=True,
-                      inline="always" if inline else "never")(fn)
-
-
-def _inline(fn):
-    return _jit(fn, inline=True)
-
-
-@_inline
+@njit_inline
 def _clip(x, lo, hi):
     """``np.clip`` of a scalar (``NaN`` stays ``NaN``)."""
     if x < lo:
@@ -73,7 +52,7 @@ def _clip(x, lo, hi):
     return x
 
 
-@_jit
+@njit
 def _parabola(xa, ya, xb, yb, xc, yc):
     """Vertex ``(x, y)`` and ``A`` of the parabola through three points (scalar form of
     :func:`eventrecon.sim.paths._parabola`)."""
@@ -83,12 +62,12 @@ def _parabola(xa, ya, xb, yb, xc, yc):
     return x, yb + m1 * (x - xb) + A * (x - xb) * (x - xa), A
 
 
-@_inline
+@njit_inline
 def _q(s, C2, C3, a, u):
     return s + (s * (s - 1.0)) * (C2 + C3 * (s - a)) - u
 
 
-@_inline
+@njit_inline
 def _cross_time(pt, pL, c, length, level):
     """Time where the path ``pt, pL`` (``length`` points) meets ``level`` on the leg
     ``c → c+1``: the cubic through points ``c−1 … c+2`` (scalar form of
@@ -129,7 +108,7 @@ def _cross_time(pt, pL, c, length, level):
     return x1 + s * h
 
 
-@_jit
+@njit
 def _room(pL, length, th):
     """At most how many crossings a path of ``length`` points emits (``th`` the smaller
     threshold): ``Σ ⌊|ΔL|/th⌋ + 1`` over its legs, bounded by ``Σ |ΔL|/th + legs``."""
@@ -139,7 +118,7 @@ def _room(pL, length, th):
     return int(total / th) + length + 1
 
 
-@_inline
+@njit_inline
 def _commit_path(pt, pL, length, done, i, gid, st_t, st_L, ref, on, off, bg, bt, bp, n):
     """Emit the crossings of the legs ``c → c+1``, ``1 ≤ c < length − 2 + done``, of one
     pixel's path (the last leg waits for its right neighbour unless the path ends) into
@@ -162,7 +141,7 @@ def _commit_path(pt, pL, length, done, i, gid, st_t, st_L, ref, on, off, bg, bt,
     return n
 
 
-@_jit
+@njit
 def _plan(t_last, h, grow, m, M, max_step):
     """Sample times of each pixel's next block, flattened.
 
@@ -196,7 +175,7 @@ def _plan(t_last, h, grow, m, M, max_step):
     return T[:j], start, n_valid, odd
 
 
-@_jit
+@njit
 def _turn(pt, pL, c, bound, tol_over):
     """The turn at sample ``c`` of a path, if smooth and reaching more than ``tol_over``
     beyond ``L(s_c)``: ``(keep, sig)`` (the conditions of
@@ -211,7 +190,7 @@ def _turn(pt, pL, c, bound, tol_over):
     return keep, sig
 
 
-@_jit
+@njit
 def _step(i0, T, start, n_valid, odd, L, pix, st_t, st_L, h, m, brk, grow, slope, ref, on,
           off, M, threshold, max_log_step, min_step, max_step, max_curvature, turn_tol,
           Wt, WL, wlen, wdone, tr_i, tr_c, tr_sig, tr_gap, n_turns, bg, bt, bp, n):
@@ -354,7 +333,7 @@ def _step(i0, T, start, n_valid, odd, L, pix, st_t, st_L, h, m, brk, grow, slope
     return N, n, n_turns, n_forced
 
 
-@_jit
+@njit
 def _commit_turned(a, tr_i, tr_tb, tr_Lb, tr_moved, tr_gap, Wt, WL, wlen, wdone, pix, st_t,
                    st_L, ref, on, off, bg, bt, bp, n):
     """Commit the pixels whose turns were refined (turns grouped by pixel, from turn ``a``
