@@ -193,3 +193,12 @@ def test_an_unknown_or_unfit_engine_is_one_clear_error():
     lowpass.lowpass = lambda ya, ua, ub, dt: ub            # noqa: E731
     with pytest.raises(ValueError, match="engine='compiled' needs .* no low-pass filter"):
         run_core(sig, np.arange(4), lowpass, CoreSettings(engine="compiled"))
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_a_non_finite_signal_is_one_clear_error(engine):
+    pytest.importorskip("numba")
+    sig = lambda g, t: np.where((g == 3) & (t > 0.5), np.nan, np.sin(9 * t))   # noqa: E731
+    with pytest.raises(ValueError, match=r"non-finite value.*pixel 3, t = 0\.5.*expected "
+                                         r"finite"):
+        run_core(sig, np.arange(5), _setup(5, 0.5), CoreSettings(engine=engine))

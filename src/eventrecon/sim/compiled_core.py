@@ -20,7 +20,7 @@ the signal stays a vectorised numpy call. One iteration is
 
 Every rule and every floating-point expression is the numpy core's
 (:mod:`eventrecon.sim.ideal`, :mod:`eventrecon.sim.paths`), so both give the same
-events bit for bit; ``tests/test_sim_core.py`` checks that. The compiled engine covers
+events bit for bit; ``tests/test_sim_turns.py`` checks that. The compiled engine covers
 the ideal pixel: no low-pass filter, no re-drawn thresholds, no ``busy`` map and no
 sample recording. ``run_core`` falls back to numpy for the rest.
 

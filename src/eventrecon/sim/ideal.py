@@ -288,6 +288,21 @@ def _calm(st: PathState, tol: float, max_step: float, block: int
     return np.flatnonzero(~calm), ci, np.where(j >= K, 1.0, j / K)
 
 
+def _finite(signal: SignalFn) -> SignalFn:
+    """``signal``, raising one clear error where it returns a non-finite log value (no
+    crossing is defined there; an infinite one would never stop emitting)."""
+    def checked(g: np.ndarray, t: np.ndarray) -> np.ndarray:
+        L = signal(g, t)
+        bad = np.flatnonzero(~np.isfinite(L))
+        if bad.size:
+            k = bad[0]
+            raise ValueError(f"event core: the log signal returned {bad.size} non-finite "
+                             f"value(s), first {L[k]} at pixel {int(g[k])}, t = {t[k]:.6g}; "
+                             "expected finite values (log(I + eps) with eps > 0)")
+        return L
+    return checked
+
+
 def _compiled(s: CoreSettings, setup: SignalSetup, busy: np.ndarray | None,
               record_samples: bool) -> bool:
     """Whether :func:`run_core` runs the compiled engine (``settings.engine``)."""
@@ -350,6 +365,7 @@ def run_core(signal: SignalFn, pix: np.ndarray, setup: SignalSetup, settings: Co
     """
     pix = np.asarray(pix, dtype=np.int64)
     stats = {"n_samples": 0, "n_forced": 0, "turn_samples": 0}
+    signal = _finite(signal)
     if _compiled(settings, setup, busy, record_samples):
         out, it = compiled_core.run_compiled(signal, pix, setup, settings, stats)
         rec = None
