@@ -190,6 +190,121 @@ def _turn(pt, pL, c, bound, tol_over):
     return keep, sig
 
 
+@njit_inline
+def _accept(i, T, s0, nv, odd, D, R, M, bound, min_step, max_step, max_curvature, st_t, h,
+            m, brk, grow, slope):
+    """The accepted prefix of pixel ``i``'s block (``D [nv]`` its steps of L, ``odd``:
+    unequal steps) and its next step, block length and growth flag (``_sample`` of the
+    numpy core): a sample is kept while ``R = max(|ΔL|, |Δ²L|/max_curvature) ≤ β``
+    (``bound``); at ``min_step`` every sample is kept (a discontinuity). The next step
+    aims at 0.95·β from the last step and its change; a rejection shrinks it in
+    proportion; a jump (a change above 4β) is bisected one sample per iteration.
+
+    Returns ``(n_acc, samples forced over the bounds, slope of the last kept step)``."""
+    t0, h0 = st_t[i, 2], h[i]
+    Rmax = 0.0
+    n_acc, n_rej = nv, 0
+    for k in range(nv):
+        if k == 0:
+            r = D[0] - slope[i] * (T[s0] - t0)
+        elif odd:
+            dT1 = T[s0 + k] - T[s0 + k - 1]
+            dT0 = T[s0 + k - 1] - (t0 if k == 1 else T[s0 + k - 2])
+            r = D[k] - D[k - 1] * (dT1 / dT0)
+        else:
+            r = D[k] - D[k - 1]
+        r = abs(r)
+        if max_curvature != 1.0:
+            r *= 1.0 / max_curvature
+        if not (r >= abs(D[k])):                 # np.fmax: NaN gives way
+            r = abs(D[k])
+        R[k] = r
+        Rmax = max(Rmax, r)
+        if r > bound:
+            n_rej += 1
+            if n_acc == nv:
+                n_acc = k
+    forced = h0 <= min_step * (1 + 1e-9)
+    if forced:
+        n_acc = nv
+    rej = n_acc < nv
+    kl = max(n_acc - 1, 0)
+    k = n_acc if rej else kl
+    hk = T[s0 + k] - (t0 if k == 0 else T[s0 + k - 1])
+    hl = T[s0 + kl] - (t0 if kl == 0 else T[s0 + kl - 1])
+    Dk, Rk = D[k], R[k]
+    Ek = Dk - (slope[i] * hk if k == 0 else D[k - 1])
+    a = max(abs(Dk + Ek), abs(Dk + M * Ek))
+    if math.isnan(a):
+        a = Rk
+    pred = max(a, Rk) / bound
+    if rej:
+        f = _clip(_TARGET * bound / Rk, 0.1, 0.7)
+    else:
+        f = _clip(_TARGET / pred, 0.5, 2.0)
+    new_slope = np.nan if R[kl] > bound else D[kl] / hl
+    b = (not forced) and (Rk > 4 * bound if rej else brk[i])
+    hn = _clip(hk * (0.5 if b else f), min_step, max_step)
+    h[i], brk[i] = hn, b
+    if b:
+        m[i] = 1
+    elif rej:
+        m[i] = min(max(n_acc + 1, 2), M)
+    else:
+        m[i] = min(2 * nv, M)
+    grow[i] = (not rej) and f >= 2.0 and Rmax <= 0.5 * bound and hn < max_step
+    return n_acc, (n_rej if forced else 0), new_slope
+
+
+@njit_inline
+def _find_turns(pt, pL, length, done, cbound, tol, ct, cs):
+    """Smooth turns of a path (``_turns`` of the numpy core): where the steps change sign
+    at a sample ``2 ≤ c ≤ length − 2`` and, on a path that ends, before its last leg.
+    Writes their samples to ``ct`` and signs (+1 at a peak) to ``cs``; returns how many."""
+    nt = 0
+    for c in range(2, length - 1):
+        if (pL[c] - pL[c - 1]) * (pL[c + 1] - pL[c]) < 0:
+            keep, sg = _turn(pt, pL, c, cbound, tol)
+            if keep:
+                ct[nt], cs[nt] = c, sg
+                nt += 1
+    if done and length >= 5:                     # the last leg of an ending path
+        c = length - 2
+        if (pL[c] - pL[c - 1]) * (pL[c + 1] - pL[c]) > 0:
+            keep, sg = _turn(pt, pL, c, cbound, tol)
+            if keep:
+                ct[nt], cs[nt] = c, sg
+                nt += 1
+    return nt
+
+
+@njit_inline
+def _queue_turns(i, pt, pL, nt, ct, cs, r0, th_on, th_off, tol, tr_i, tr_c, tr_sig, tr_gap,
+                 n_turns):
+    """Write pixel ``i``'s ``nt`` turns to ``tr_*`` from ``n_turns`` on, with the distance
+    from each turn to its next level (the reference level there: emission without
+    timing from ``r0``; ``−inf`` when the path has two turns: both are refined). Returns
+    whether one of them may reach its level, i.e. the path must wait for refinement."""
+    wait = False
+    for j in range(nt):
+        c, sg = ct[j], cs[j]
+        r = r0
+        for cc in range(1, c):
+            Lb = pL[cc + 1]
+            while Lb >= r + th_on:
+                r += th_on
+            while Lb <= r - th_off:
+                r -= th_off
+        gap = -np.inf if nt > 1 else sg * ((r + th_on if sg > 0 else r - th_off) - pL[c])
+        xv, yv, A = _parabola(pt[c - 1], pL[c - 1], pt[c], pL[c], pt[c + 1], pL[c + 1])
+        over = sg * (yv - pL[c])
+        wait |= ((sg * A < 0) and (over > tol) and (pt[c - 1] < xv) and (xv < pt[c + 1])
+                 and (xv != pt[c]) and (gap <= 2 * over + 2 * tol))
+        tr_i[n_turns + j], tr_c[n_turns + j] = i, c
+        tr_sig[n_turns + j], tr_gap[n_turns + j] = sg, gap
+    return wait
+
+
 @njit
 def _step(i0, T, start, n_valid, odd, L, pix, st_t, st_L, h, m, brk, grow, slope, ref, on,
           off, M, threshold, max_log_step, min_step, max_step, max_curvature, turn_tol,
@@ -206,128 +321,39 @@ def _step(i0, T, start, n_valid, odd, L, pix, st_t, st_L, h, m, brk, grow, slope
     bound = max_log_step * threshold
     tol = 0.5 * turn_tol * threshold
     cbound = max_curvature * max_log_step * threshold
-    R = np.empty(M)
-    D = np.empty(M)
-    pt = np.empty(M + 3)
-    pL = np.empty(M + 3)
-    ct = np.empty(M + 2, np.int64)
-    cs = np.empty(M + 2)
+    R, D = np.empty(M), np.empty(M)
+    pt, pL = np.empty(M + 3), np.empty(M + 3)
+    ct, cs = np.empty(M + 2, np.int64), np.empty(M + 2)
     n_forced = 0
     for i in range(i0, N):
-        s0, nv, t0, h0 = start[i], n_valid[i], st_t[i, 2], h[i]
-        prev = st_L[i, 2]
-        # ---- acceptance: R = max(|ΔL|, |Δ²L|/max_curvature) ≤ β
-        var = abs(prev - st_L[i, 1])
+        s0, nv, prev = start[i], n_valid[i], st_L[i, 2]
+        var = abs(prev - st_L[i, 1])             # bounds the events of the path
         for k in range(nv):
             D[k] = L[s0 + k] - (prev if k == 0 else L[s0 + k - 1])
             var += abs(D[k])
         if n + int(var / min(on[i], off[i])) + nv + 3 > bg.size:
             return i, n, n_turns, n_forced      # the caller makes room
-        Rmax = 0.0
-        n_acc, n_rej = nv, 0
-        for k in range(nv):
-            if k == 0:
-                r = D[0] - slope[i] * (T[s0] - t0)
-            elif odd[i]:
-                dT1 = T[s0 + k] - T[s0 + k - 1]
-                dT0 = T[s0 + k - 1] - (t0 if k == 1 else T[s0 + k - 2])
-                r = D[k] - D[k - 1] * (dT1 / dT0)
-            else:
-                r = D[k] - D[k - 1]
-            r = abs(r)
-            if max_curvature != 1.0:
-                r *= 1.0 / max_curvature
-            if not (r >= abs(D[k])):             # np.fmax: NaN gives way
-                r = abs(D[k])
-            R[k] = r
-            Rmax = max(Rmax, r)
-            if r > bound:
-                n_rej += 1
-                if n_acc == nv:
-                    n_acc = k
-        forced = h0 <= min_step * (1 + 1e-9)
-        if forced:
-            n_forced += n_rej
-            n_acc = nv
-        # ---- the next step (``_sample`` in the numpy core)
-        rej = n_acc < nv
-        kl = max(n_acc - 1, 0)
-        k = n_acc if rej else kl
-        hk = T[s0 + k] - (t0 if k == 0 else T[s0 + k - 1])
-        hl = T[s0 + kl] - (t0 if kl == 0 else T[s0 + kl - 1])
-        Dk, Rk = D[k], R[k]
-        Ek = Dk - (slope[i] * hk if k == 0 else D[k - 1])
-        a = max(abs(Dk + Ek), abs(Dk + M * Ek))
-        if math.isnan(a):
-            a = Rk
-        pred = max(a, Rk) / bound
-        if rej:
-            f = _clip(_TARGET * bound / Rk, 0.1, 0.7)
-        else:
-            f = _clip(_TARGET / pred, 0.5, 2.0)
-        new_slope = np.nan if R[kl] > bound else D[kl] / hl
-        b = (not forced) and (Rk > 4 * bound if rej else brk[i])
-        hn = _clip(hk * (0.5 if b else f), min_step, max_step)
-        h[i], brk[i] = hn, b
-        if b:
-            m[i] = 1
-        elif rej:
-            m[i] = min(max(n_acc + 1, 2), M)
-        else:
-            m[i] = min(2 * nv, M)
-        grow[i] = (not rej) and f >= 2.0 and Rmax <= 0.5 * bound and hn < max_step
+        n_acc, forced, new_slope = _accept(i, T, s0, nv, odd[i], D, R, M, bound, min_step,
+                                           max_step, max_curvature, st_t, h, m, brk, grow,
+                                           slope)
+        n_forced += forced
         if n_acc == 0:
             continue
         slope[i] = new_slope
-        # ---- the path s_{−2}, s_{−1}, s_0, accepted samples; its smooth turns
+        # the path s_{−2}, s_{−1}, s_0, accepted samples
         for k in range(3):
             pt[k], pL[k] = st_t[i, k], st_L[i, k]
         for k in range(n_acc):
             pt[3 + k], pL[3 + k] = T[s0 + k], L[s0 + k]
         length = n_acc + 3
         done = 1 if pt[length - 1] >= 1.0 else 0
-        nt = 0
-        for c in range(2, length - 1):
-            if (pL[c] - pL[c - 1]) * (pL[c + 1] - pL[c]) < 0:
-                keep, sg = _turn(pt, pL, c, cbound, tol)
-                if keep:
-                    ct[nt], cs[nt] = c, sg
-                    nt += 1
-        if done and length >= 5:                 # the last leg of an ending path
-            c = length - 2
-            if (pL[c] - pL[c - 1]) * (pL[c + 1] - pL[c]) > 0:
-                keep, sg = _turn(pt, pL, c, cbound, tol)
-                if keep:
-                    ct[nt], cs[nt] = c, sg
-                    nt += 1
-        wait = False
-        if nt:
-            # the reference level at each turn (emission without timing) and the distance
-            # from the turn to its next level; two turns in a path are both refined
-            for j in range(nt):
-                c, sg = ct[j], cs[j]
-                r, th_on, th_off = ref[i], on[i], off[i]
-                for cc in range(1, c):
-                    Lb = pL[cc + 1]
-                    while Lb >= r + th_on:
-                        r += th_on
-                    while Lb <= r - th_off:
-                        r -= th_off
-                gap = -np.inf if nt > 1 else sg * ((r + th_on if sg > 0 else r - th_off)
-                                                    - pL[c])
-                xv, yv, A = _parabola(pt[c - 1], pL[c - 1], pt[c], pL[c], pt[c + 1],
-                                      pL[c + 1])
-                over = sg * (yv - pL[c])
-                wait |= ((sg * A < 0) and (over > tol) and (pt[c - 1] < xv)
-                         and (xv < pt[c + 1]) and (xv != pt[c])
-                         and (gap <= 2 * over + 2 * tol))
-                tr_i[n_turns + j], tr_c[n_turns + j] = i, c
-                tr_sig[n_turns + j], tr_gap[n_turns + j] = sg, gap
-            if wait:                             # refined by the caller
-                n_turns += nt
-                Wt[i, :length], WL[i, :length] = pt[:length], pL[:length]
-                wlen[i], wdone[i] = length, done
-        if not wait:
+        nt = _find_turns(pt, pL, length, done, cbound, tol, ct, cs)
+        if nt and _queue_turns(i, pt, pL, nt, ct, cs, ref[i], on[i], off[i], tol, tr_i,
+                               tr_c, tr_sig, tr_gap, n_turns):
+            n_turns += nt                        # refined by the caller
+            Wt[i, :length], WL[i, :length] = pt[:length], pL[:length]
+            wlen[i], wdone[i] = length, done
+        else:
             n = _commit_path(pt, pL, length, done, i, pix[i], st_t, st_L, ref, on, off, bg, bt,
                              bp, n)
     return N, n, n_turns, n_forced
