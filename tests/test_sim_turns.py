@@ -202,3 +202,30 @@ def test_a_non_finite_signal_is_one_clear_error(engine):
     with pytest.raises(ValueError, match=r"non-finite value.*pixel 3, t = 0\.5.*expected "
                                          r"finite"):
         run_core(sig, np.arange(5), _setup(5, 0.5), CoreSettings(engine=engine))
+
+
+def test_a_jump_larger_than_the_first_event_chunk_grows_it():
+    # one pixel, one jump of 1200 levels: more events on one leg than the first chunk
+    # (4·P + 1024) holds; the compiled engine must grow the chunk, not loop or overflow
+    pytest.importorskip("numba")
+    sig = lambda g, t: 600.0 * (t >= 0.5)                     # noqa: E731
+    out = {e: run_core(sig, np.arange(1), _setup(1, 0.5), CoreSettings(engine=e))
+           for e in ("numpy", "compiled")}
+    assert out["compiled"].t.size == 1200 and np.all(out["compiled"].p == 1)
+    for f in "gtp":
+        np.testing.assert_array_equal(getattr(out["compiled"], f), getattr(out["numpy"], f))
+
+
+def test_thresholds_must_be_positive():
+    with pytest.raises(ValueError, match=r"SignalSetup.theta_off: expected thresholds > 0"):
+        run_core(SmallGrating(), np.arange(4),
+                 SignalSetup(np.full(4, 0.5), np.zeros(4), np.full((4, 3), 1 / 3)),
+                 CoreSettings())
+
+
+def test_the_compiled_time_order_refuses_non_finite_stamps():
+    pytest.importorskip("numba")
+    t = np.random.default_rng(0).random(5 * CHUNK)
+    t[7] = np.nan
+    with pytest.raises(ValueError, match="expected finite time stamps"):
+        time_order(t, np.arange(t.size))

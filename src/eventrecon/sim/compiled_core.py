@@ -22,7 +22,13 @@ Every rule and every floating-point expression is the numpy core's
 (:mod:`eventrecon.sim.ideal`, :mod:`eventrecon.sim.paths`), so both give the same
 events bit for bit; ``tests/test_sim_turns.py`` checks that. The compiled engine covers
 the ideal pixel: no low-pass filter, no re-drawn thresholds, no ``busy`` map and no
-sample recording. ``run_core`` falls back to numpy for the rest.
+sample recording. ``run_core`` falls back to numpy for the rest -- which includes every
+scene the simulator renders (:func:`~eventrecon.sim.event_sim.simulate_events` always
+passes a ``busy`` map). That is deliberate: there the renderer costs ~20× the core's
+bookkeeping, and a rendered signal evaluated in other batches may differ in the last
+bit (vectorised and scalar ``exp``/``log`` paths), which would change published datasets
+without a ``SIM_VERSION`` bump. The compiled engine serves analytic signals: the
+benchmarks, and users calling :func:`~eventrecon.sim.ideal.run_core` on their own.
 
 numba compiles the loops on first use (a few seconds) and caches them next to this file.
 """
@@ -115,7 +121,7 @@ def _room(pL, length, th):
     total = 0.0
     for c in range(length - 1):
         total += abs(pL[c + 1] - pL[c])
-    return int(total / th) + length + 1
+    return total / th + length + 1             # a float: no integer overflow
 
 
 @njit_inline
@@ -331,7 +337,7 @@ def _step(i0, T, start, n_valid, odd, L, pix, st_t, st_L, h, m, brk, grow, slope
         for k in range(nv):
             D[k] = L[s0 + k] - (prev if k == 0 else L[s0 + k - 1])
             var += abs(D[k])
-        if n + int(var / min(on[i], off[i])) + nv + 3 > bg.size:
+        if n + var / min(on[i], off[i]) + nv + 3 > bg.size:   # floats: no overflow
             return i, n, n_turns, n_forced      # the caller makes room
         n_acc, forced, new_slope = _accept(i, T, s0, nv, odd[i], D, R, M, bound, min_step,
                                            max_step, max_curvature, st_t, h, m, brk, grow,
@@ -434,14 +440,14 @@ def run_compiled(signal: Callable, pix: np.ndarray, setup, s, stats: dict
     parts: list = []                             # full event chunks
     cap = 4 * P + 1024
 
-    def chunk(n: int) -> tuple:                  # a new chunk, the full one kept as is
-        nonlocal cap
-        if n:
-            parts.append(tuple(x[:n] for x in ev))
-            cap *= 2
+    def chunk(n: int) -> tuple:                  # a new chunk twice as large, the full
+        nonlocal cap                             # one kept as is (a pixel whose events
+        if n:                                    # did not fit even an empty chunk just
+            parts.append(tuple(x[:n] for x in ev))   # gets the larger one)
+        cap *= 2
         return np.empty(cap, np.int64), np.empty(cap), np.empty(cap, np.int8)
 
-    ev, n = chunk(0), 0
+    ev, n = (np.empty(cap, np.int64), np.empty(cap), np.empty(cap, np.int8)), 0
     tol = 0.5 * s.turn_tol * s.threshold
     it = 0
 

@@ -305,10 +305,16 @@ def _finite(signal: SignalFn) -> SignalFn:
 
 def _compiled(s: CoreSettings, setup: SignalSetup, busy: np.ndarray | None,
               record_samples: bool) -> bool:
-    """Whether :func:`run_core` runs the compiled engine (``settings.engine``)."""
+    """Whether :func:`run_core` runs the compiled engine (``settings.engine``); checks the
+    engine's name and that the thresholds are positive (a zero one emits forever)."""
     if s.engine not in ("auto", "numpy", "compiled"):
         raise ValueError(f"CoreSettings.engine: expected 'auto', 'numpy' or 'compiled', "
                          f"got {s.engine!r}")
+    for name in ("theta_on", "theta_off"):
+        th = getattr(setup, name)
+        if th.size and not (np.min(th) > 0):
+            raise ValueError(f"SignalSetup.{name}: expected thresholds > 0, got a minimum of "
+                             f"{np.min(th)}")
     fits = (setup.lowpass is None and setup.redraw is None and busy is None
             and not record_samples)
     if s.engine == "compiled" and not (fits and compiled_core.AVAILABLE):

@@ -81,7 +81,7 @@ def _count(t, lo, scale, B, start):
     """Add the bucket sizes of ``t`` (``⌊(t − lo)·scale⌋``, at most ``B − 1``) to
     ``start[1:]``."""
     for i in range(t.size):
-        start[min(np.int64((t[i] - lo) * scale), B - 1) + 1] += 1
+        start[max(min(np.int64((t[i] - lo) * scale), B - 1), 0) + 1] += 1
 
 
 @njit
@@ -89,7 +89,7 @@ def _place(t, g, first, lo, scale, B, pos, ts, gs, ps):
     """Stable counting-sort placement of ``(t, g)`` (indices from ``first``) at the
     running bucket positions ``pos``."""
     for i in range(t.size):
-        k = min(np.int64((t[i] - lo) * scale), B - 1)
+        k = max(min(np.int64((t[i] - lo) * scale), B - 1), 0)
         j = pos[k]
         ts[j], gs[j], ps[j] = t[i], g[i], first + i
         pos[k] += 1
@@ -128,10 +128,10 @@ def _order_buckets(ts, gs, ps, start):
         if m < 2:
             continue
         lo, hi = ts[a:e].min(), ts[a:e].max()
-        if m <= 48 or not hi > lo:
+        B, scale = m // 8, (m // 8) / (hi - lo)
+        if m <= 48 or not hi > lo or not np.isfinite(scale):   # (subnormal spread)
             _order_small(ts, gs, ps, a, e)
             continue
-        B, scale = m // 8, (m // 8) / (hi - lo)
         s2[:B + 1] = 0
         _count(ts[a:e], lo, scale, B, s2)
         for j in range(B):
@@ -146,6 +146,15 @@ def _order_buckets(ts, gs, ps, start):
                 _order_small(ts, gs, ps, a + s2[j], a + s2[j + 1])
 
 
+def _compiled_fits(ts: list[np.ndarray], gs: list[np.ndarray]) -> bool:
+    """Whether the compiled order applies: numba, more than ``4·CHUNK`` events, float64
+    stamps and one integer dtype of pixel ids (the numpy path keeps any other dtypes)."""
+    return (AVAILABLE and sum(t.size for t in ts) > 4 * CHUNK
+            and all(isinstance(t, np.ndarray) and t.dtype == np.float64 for t in ts)
+            and all(isinstance(g, np.ndarray) for g in gs)
+            and len({g.dtype for g in gs}) == 1 and gs[0].dtype.kind in "iu")
+
+
 def _bucket_order(parts: list[tuple[np.ndarray, np.ndarray]]
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(perm, t[perm], g[perm])`` of the concatenated ``(t, g)`` parts (finite ``t``),
@@ -153,17 +162,21 @@ def _bucket_order(parts: list[tuple[np.ndarray, np.ndarray]]
     n = sum(t.size for t, _ in parts)
     lo = min(t.min() for t, _ in parts if t.size)
     hi = max(t.max() for t, _ in parts if t.size)
-    gdt = np.result_type(*(g.dtype for _, g in parts))
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        raise ValueError("time order: expected finite time stamps, got NaN or inf")
+    gdt = parts[0][1].dtype
     ts, gs, ps = np.empty(n), np.empty(n, gdt), np.empty(n, np.int64)
     B = min(max(1, n // 16384), 4096) if hi > lo else 1
     scale = B / (hi - lo) if hi > lo else 0.0
+    if not np.isfinite(scale):                   # a subnormal spread: one bucket
+        B, scale = 1, 0.0
     start = np.zeros(B + 1, np.int64)
     for t, _ in parts:
         _count(t, lo, scale, B, start)
     np.cumsum(start, out=start)
     pos, first = start[:-1].copy(), 0
     for t, g in parts:
-        _place(t, g.astype(gdt, copy=False), first, lo, scale, B, pos, ts, gs, ps)
+        _place(t, g, first, lo, scale, B, pos, ts, gs, ps)
         first += t.size
     _order_buckets(ts, gs, ps, start)
     return ps, ts, gs
@@ -186,7 +199,7 @@ def time_order(t: np.ndarray, g: np.ndarray) -> np.ndarray:
     """
     t = np.asarray(t, dtype=np.float64)
     g = np.asarray(g)
-    if AVAILABLE and t.size > 4 * CHUNK:
+    if _compiled_fits([t], [g]):
         return _bucket_order([(t, g)])[0]
     if t.size <= 4 * CHUNK:
         return _order_chunk(t, g).astype(np.int64, copy=False)
@@ -210,9 +223,8 @@ def merge_by_time(parts: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]
     >>> g.tolist(), t.tolist(), p.tolist()
     ([2, 0, 1], [0.1, 0.5, 0.5], [-1, 1, 1])
     """
-    if AVAILABLE and sum(part[1].size for part in parts) > 4 * CHUNK:
-        perm, t, g = _bucket_order([(np.asarray(part[1], np.float64), np.asarray(part[0]))
-                                    for part in parts])
+    if _compiled_fits([p[1] for p in parts], [p[0] for p in parts]):
+        perm, t, g = _bucket_order([(part[1], part[0]) for part in parts])
         rest = (np.concatenate([part[i] for part in parts]) for i in range(2, len(parts[0])))
         return (g, t, *(c[perm] for c in rest))
     cols = [np.concatenate([part[i] for part in parts]) for i in range(len(parts[0]))]
