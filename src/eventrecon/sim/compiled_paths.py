@@ -1,0 +1,183 @@
+"""The per-pixel path of the compiled event core: turns, crossings and their times.
+
+Scalar counterparts, expression for expression, of :mod:`eventrecon.sim.paths` (whose
+module docstring states the rules), called per pixel from the loops of
+:mod:`eventrecon.sim.compiled_core`: the vertex of the parabola through three samples,
+the smooth turns of a path and whether one may reach its next level, emission of a
+path's crossings and the cubic crossing time. The per-event helpers are inlined at their
+call sites (a call would cost more than their work).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from eventrecon.sim.jit import njit, njit_inline
+
+__all__ = ["clip", "parabola", "cross_time", "room", "commit_path", "turn", "find_turns",
+           "queue_turns"]
+
+
+@njit_inline
+def clip(x, lo, hi):
+    """``np.clip`` of a scalar (``NaN`` stays ``NaN``)."""
+    if x < lo:
+        return lo
+    if x > hi:
+        return hi
+    return x
+
+
+@njit
+def parabola(xa, ya, xb, yb, xc, yc):
+    """Vertex ``(x, y)`` and ``A`` of the parabola through three points (scalar form of
+    :func:`eventrecon.sim.paths._parabola`)."""
+    m1 = (yb - ya) / (xb - xa)
+    A = ((yc - yb) / (xc - xb) - m1) / (xc - xa)
+    x = clip(0.5 * (xa + xb) - m1 / (2 * A), xa, xc)
+    return x, yb + m1 * (x - xb) + A * (x - xb) * (x - xa), A
+
+
+@njit_inline
+def _q(s, C2, C3, a, u):
+    return s + (s * (s - 1.0)) * (C2 + C3 * (s - a)) - u
+
+
+@njit_inline
+def cross_time(pt, pL, c, length, level):
+    """Time where the path ``pt, pL`` (``length`` points) meets ``level`` on the leg
+    ``c → c+1``: the cubic through points ``c−1 … c+2`` (scalar form of
+    :func:`eventrecon.sim.paths.cross_times`; a point beyond the path repeats the last)."""
+    d = c + 2 if c + 2 < length else length - 1
+    x0, x1, x2, x3 = pt[c - 1], pt[c], pt[c + 1], pt[d]
+    y0, y1, y2, y3 = pL[c - 1], pL[c], pL[c + 1], pL[d]
+    h, D = x2 - x1, y2 - y1
+    u = (level - y1) / D
+    a, b = (x0 - x1) / h, (x3 - x1) / h
+    left, right = a < 0, b > 1
+    c2l = (1.0 + (y1 - y0) / (a * D)) / (1.0 - a)
+    c2r = ((y3 - y2) / ((b - 1.0) * D) - 1.0) / b
+    C3 = (c2r - c2l) / (b - a) if (left and right) else 0.0
+    C2 = c2l if left else (c2r if right else 0.0)
+    if not left:
+        a = 0.0
+    s1 = u * (u - 1.0)
+    dq = 1.0 + C2 * (2 * u - 1.0) + C3 * ((2 * u - 1.0) * (u - a) + s1)
+    s = u - _q(u, C2, C3, a, u) / dq
+    if not ((s >= 0.0) and (s <= 1.0) and (dq > 0) and (abs(s - u) < 0.1)):
+        k = 0                                    # not monotone: first sign change on a
+        for j in range(33):                      # grid, then regula falsi
+            if _q(j / 32, C2, C3, a, u) >= 0:
+                k = j
+                break
+        k = max(k, 1)
+        lo, hi = (k - 1) / 32, k / 32
+        qlo, qhi = _q(lo, C2, C3, a, u), _q(hi, C2, C3, a, u)
+        for _ in range(4):
+            mid = clip(lo - qlo * (hi - lo) / (qhi - qlo), lo, hi)
+            qm = _q(mid, C2, C3, a, u)
+            if qm >= 0:
+                hi, qhi = mid, qm
+            else:
+                lo, qlo = mid, qm
+        s = hi if math.isfinite(hi) else clip(u, 0.0, 1.0)
+    return x1 + s * h
+
+
+@njit
+def room(pL, length, th):
+    """At most how many crossings a path of ``length`` points emits (``th`` the smaller
+    threshold): ``Σ ⌊|ΔL|/th⌋ + 1`` over its legs, bounded by ``Σ |ΔL|/th + legs``."""
+    total = 0.0
+    for c in range(length - 1):
+        total += abs(pL[c + 1] - pL[c])
+    return total / th + length + 1             # a float: no integer overflow
+
+
+@njit_inline
+def commit_path(pt, pL, length, done, i, gid, st_t, st_L, ref, on, off, bg, bt, bp, n):
+    """Emit the crossings of the legs ``c → c+1``, ``1 ≤ c < length − 2 + done``, of one
+    pixel's path (the last leg waits for its right neighbour unless the path ends) into
+    ``bg, bt, bp`` from ``n`` on (room for :func:`room` events is the caller's), time
+    them, update the pixel's reference level and keep the last three points as its state.
+    Returns the new ``n``."""
+    r, th_on, th_off = ref[i], on[i], off[i]
+    hi, lo = r + th_on, r - th_off
+    for c in range(1, length - 2 + done):
+        Lb = pL[c + 1]
+        while Lb >= hi or Lb <= lo:              # ref − θ_off < L < ref + θ_on after
+            up = Lb >= hi
+            r = hi if up else lo
+            bg[n], bt[n], bp[n] = gid, cross_time(pt, pL, c, length, r), 1 if up else -1
+            n += 1
+            hi, lo = r + th_on, r - th_off
+    ref[i] = r
+    for k in range(3):
+        st_t[i, k], st_L[i, k] = pt[length - 3 + k], pL[length - 3 + k]
+    return n
+
+
+@njit
+def turn(pt, pL, c, bound, tol_over):
+    """The turn at sample ``c`` of a path, if smooth and reaching more than ``tol_over``
+    beyond ``L(s_c)``: ``(keep, sig)`` (the conditions of
+    :func:`eventrecon.sim.paths._turns`)."""
+    sig = 1.0 if pL[c] > pL[c - 1] else -1.0
+    xa, xb, xc = pt[c - 1], pt[c], pt[c + 1]
+    ya, yb, yc = pL[c - 1], pL[c], pL[c + 1]
+    _, yv, A = parabola(xa, ya, xb, yb, xc, yc)
+    over = sig * (yv - yb)
+    keep = ((xa < xb) and (xb < xc) and (sig * A < 0) and (over > tol_over)
+            and (abs(A) * (xc - xa) * (xc - xb) <= 2 * bound))
+    return keep, sig
+
+
+@njit_inline
+def find_turns(pt, pL, length, done, cbound, tol, ct, cs):
+    """Smooth turns of a path (``_turns`` of the numpy core): where the steps change sign
+    at a sample ``2 ≤ c ≤ length − 2`` and, on a path that ends, before its last leg.
+    Writes their samples to ``ct`` and signs (+1 at a peak) to ``cs``; returns how many."""
+    nt = 0
+    for c in range(2, length - 1):
+        if (pL[c] - pL[c - 1]) * (pL[c + 1] - pL[c]) < 0:
+            keep, sg = turn(pt, pL, c, cbound, tol)
+            if keep:
+                ct[nt], cs[nt] = c, sg
+                nt += 1
+    if done and length >= 5:                     # the last leg of an ending path
+        c = length - 2
+        if (pL[c] - pL[c - 1]) * (pL[c + 1] - pL[c]) > 0:
+            keep, sg = turn(pt, pL, c, cbound, tol)
+            if keep:
+                ct[nt], cs[nt] = c, sg
+                nt += 1
+    return nt
+
+
+@njit_inline
+def queue_turns(i, pt, pL, nt, ct, cs, r0, th_on, th_off, tol, tr_i, tr_c, tr_sig, tr_gap,
+                 n_turns):
+    """Write pixel ``i``'s ``nt`` turns to ``tr_*`` from ``n_turns`` on, with the distance
+    from each turn to its next level (the reference level there: emission without
+    timing from ``r0``; ``−inf`` when the path has two turns: both are refined). Returns
+    whether one of them may reach its level, i.e. the path must wait for refinement."""
+    wait = False
+    for j in range(nt):
+        c, sg = ct[j], cs[j]
+        r = r0
+        for cc in range(1, c):
+            Lb = pL[cc + 1]
+            while Lb >= r + th_on:
+                r += th_on
+            while Lb <= r - th_off:
+                r -= th_off
+        gap = -np.inf if nt > 1 else sg * ((r + th_on if sg > 0 else r - th_off) - pL[c])
+        xv, yv, A = parabola(pt[c - 1], pL[c - 1], pt[c], pL[c], pt[c + 1], pL[c + 1])
+        over = sg * (yv - pL[c])
+        wait |= ((sg * A < 0) and (over > tol) and (pt[c - 1] < xv) and (xv < pt[c + 1])
+                 and (xv != pt[c]) and (gap <= 2 * over + 2 * tol))
+        tr_i[n_turns + j], tr_c[n_turns + j] = i, c
+        tr_sig[n_turns + j], tr_gap[n_turns + j] = sg, gap
+    return wait
