@@ -42,6 +42,7 @@ def parabola(xa, ya, xb, yb, xc, yc):
 
 @njit_inline
 def _q(s, C2, C3, a, u):
+    """The crossing cubic minus its level at ``s`` (see :func:`cross_time`)."""
     return s + (s * (s - 1.0)) * (C2 + C3 * (s - a)) - u
 
 
