@@ -42,12 +42,12 @@ from collections.abc import Callable
 import numpy as np
 
 from eventrecon.sim.compiled_paths import clip, commit_path, find_turns, queue_turns, room
+from eventrecon.sim.core_settings import STEP_TARGET
 from eventrecon.sim.jit import AVAILABLE, njit, njit_inline
 from eventrecon.sim.paths import refine_turns
 
 __all__ = ["AVAILABLE", "run_compiled"]
 
-_TARGET = 0.95                                   # the numpy core's aimed-for fraction
 
 
 @njit
@@ -133,9 +133,9 @@ def _accept(i, T, s0, nv, odd, D, R, M, bound, min_step, max_step, max_curvature
         a = Rk
     pred = max(a, Rk) / bound
     if rej:
-        f = clip(_TARGET * bound / Rk, 0.1, 0.7)
+        f = clip(STEP_TARGET * bound / Rk, 0.1, 0.7)
     else:
-        f = clip(_TARGET / pred, 0.5, 2.0)
+        f = clip(STEP_TARGET / pred, 0.5, 2.0)
     new_slope = np.nan if R[kl] > bound else D[kl] / hl
     b = (not forced) and (Rk > 4 * bound if rej else brk[i])
     hn = clip(hk * (0.5 if b else f), min_step, max_step)

@@ -11,7 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["CoreSettings", "SignalSetup"]
+__all__ = ["CoreSettings", "SignalSetup", "STEP_TARGET"]
+
+#: The next step aims at this fraction of the sampling bounds (both engines).
+STEP_TARGET = 0.95
 
 
 @dataclass

@@ -45,7 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from eventrecon.sim import compiled_core
-from eventrecon.sim.core_settings import CoreSettings, SignalSetup
+from eventrecon.sim.core_settings import STEP_TARGET, CoreSettings, SignalSetup
 from eventrecon.sim.merge import merge_by_time, time_order
 from eventrecon.sim.paths import PathState, commit
 
@@ -179,7 +179,6 @@ def frame_events(frames: np.ndarray | Sequence[np.ndarray], times: np.ndarray,
 _STEPS = np.arange(1.0, 65.0)[:, None]
 _POW2 = 2.0 ** np.arange(64)
 _FIRST = np.arange(64, 0, -1, dtype=np.int8)[:, None]   # M − k: first flagged row k
-_TARGET = 0.95                                          # aimed-for fraction of the bounds
 
 
 def _sample(signal: SignalFn, st: PathState, sel, setup: SignalSetup, s: CoreSettings,
@@ -256,8 +255,8 @@ def _sample(signal: SignalFn, st: PathState, sel, setup: SignalSetup, s: CoreSet
     Ek = Dk - np.where(k < N, st.slope[sel] * hk, Df[np.maximum(k - N, 0)])
     with np.errstate(divide="ignore", invalid="ignore"):
         pred = np.fmax(np.maximum(np.abs(Dk + Ek), np.abs(Dk + M * Ek)), Rk) / bound
-        f = np.where(rej, np.clip(_TARGET * bound / Rk, 0.1, 0.7),
-                     np.clip(_TARGET / pred, 0.5, 2.0))
+        f = np.where(rej, np.clip(STEP_TARGET * bound / Rk, 0.1, 0.7),
+                     np.clip(STEP_TARGET / pred, 0.5, 2.0))
         slope = np.where(Rf[kl] > bound, np.nan, Df[kl] / hl)
     # a jump (a rejected change above 4β that does not shrink with the step) is
     # bracketed by bisection, one sample per iteration, down to min_step
@@ -303,18 +302,21 @@ def _finite(signal: SignalFn) -> SignalFn:
     return checked
 
 
-def _compiled(s: CoreSettings, setup: SignalSetup, busy: np.ndarray | None,
-              record_samples: bool) -> bool:
-    """Whether :func:`run_core` runs the compiled engine (``settings.engine``); checks the
-    engine's name and that the thresholds are positive (a zero one emits forever)."""
-    if s.engine not in ("auto", "numpy", "compiled"):
-        raise ValueError(f"CoreSettings.engine: expected 'auto', 'numpy' or 'compiled', "
-                         f"got {s.engine!r}")
+def _check_thresholds(setup: SignalSetup) -> None:
+    """One clear error for a threshold ≤ 0 (a zero one would emit forever)."""
     for name in ("theta_on", "theta_off"):
         th = getattr(setup, name)
         if th.size and not (np.min(th) > 0):
             raise ValueError(f"SignalSetup.{name}: expected thresholds > 0, got a minimum of "
                              f"{np.min(th)}")
+
+
+def _compiled(s: CoreSettings, setup: SignalSetup, busy: np.ndarray | None,
+              record_samples: bool) -> bool:
+    """Whether :func:`run_core` runs the compiled engine (``settings.engine``)."""
+    if s.engine not in ("auto", "numpy", "compiled"):
+        raise ValueError(f"CoreSettings.engine: expected 'auto', 'numpy' or 'compiled', "
+                         f"got {s.engine!r}")
     fits = (setup.lowpass is None and setup.redraw is None and busy is None
             and not record_samples)
     if s.engine == "compiled" and not (fits and compiled_core.AVAILABLE):
@@ -372,6 +374,7 @@ def run_core(signal: SignalFn, pix: np.ndarray, setup: SignalSetup, settings: Co
     pix = np.asarray(pix, dtype=np.int64)
     stats = {"n_samples": 0, "n_forced": 0, "turn_samples": 0}
     signal = _finite(signal)
+    _check_thresholds(setup)
     if _compiled(settings, setup, busy, record_samples):
         out, it = compiled_core.run_compiled(signal, pix, setup, settings, stats)
         rec = None
