@@ -116,6 +116,15 @@ def test_time_order_equals_lexsort_with_ties(n, decimals):
     G, T, I = merge_by_time([(g[:half], t[:half], np.arange(half)),
                              (g[half:], t[half:], np.arange(half, n))])
     np.testing.assert_array_equal(I, expect)
+    p = rng.choice(np.array([-1, 1], np.int8), n)  # one int8 column (carried along) and
+    G, T, P = merge_by_time([(g[:half], t[:half], p[:half]), (g[half:], t[half:], p[half:])])
+    for got, want in ((G, g), (T, t), (P, p)):    # two columns (gathered by the order)
+        np.testing.assert_array_equal(got, want[expect])
+        assert got.dtype == want.dtype
+    _, _, P2, I2 = merge_by_time([(g[:half], t[:half], p[:half], np.arange(half)),
+                                  (g[half:], t[half:], p[half:], np.arange(half, n))])
+    np.testing.assert_array_equal(P2, p[expect])
+    np.testing.assert_array_equal(I2, expect)
 
 
 def test_frame_events_equal_crossings_then_a_global_sort():

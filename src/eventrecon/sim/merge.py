@@ -23,7 +23,9 @@ buckets, each bucket (cache-sized) again into buckets of about 8 events, and tho
 ordered by ``(t, g)`` with a stable insertion sort (a stable merge sort where a bucket
 holds more than 48). The bucket index ``⌊(t − lo)·B/(hi − lo)⌋`` is monotone in ``t``,
 so equal stamps share a bucket and the buckets follow in time. Large arrays are touched
-a few times instead of a dozen.
+a few times instead of a dozen. The one extra column of the core's events (the polarity,
+``int8``) is carried along by the sorts instead of a 64-bit permutation gathered
+afterwards: 7 bytes less per event to write, and no random-access gather.
 """
 
 from __future__ import annotations
@@ -85,13 +87,15 @@ def _count(t, lo, scale, B, start):
 
 
 @njit
-def _place(t, g, first, lo, scale, B, pos, ts, gs, ps):
-    """Stable counting-sort placement of ``(t, g)`` (indices from ``first``) at the
-    running bucket positions ``pos``."""
+def _place(t, g, q, first, lo, scale, B, pos, ts, gs, qs):
+    """Stable counting-sort placement of ``(t, g)`` with their payload at the running
+    bucket positions ``pos``: ``q[i]``, or the index ``first + i`` where ``q`` is empty."""
+    index = q.size == 0
     for i in range(t.size):
         k = max(min(np.int64((t[i] - lo) * scale), B - 1), 0)
         j = pos[k]
-        ts[j], gs[j], ps[j] = t[i], g[i], first + i
+        ts[j], gs[j] = t[i], g[i]
+        qs[j] = first + i if index else q[i]
         pos[k] += 1
 
 
@@ -120,8 +124,7 @@ def _order_buckets(ts, gs, ps, start):
     for k in range(start.size - 1):
         m_max = max(m_max, start[k + 1] - start[k])
     s2 = np.zeros(m_max // 8 + 2, np.int64)
-    ts2, gs2, ps2 = np.empty(m_max), np.empty(m_max, gs.dtype), np.empty(m_max, np.int64)
-    pp = np.empty(m_max, np.int64)
+    ts2, gs2, ps2 = np.empty(m_max), np.empty(m_max, gs.dtype), np.empty(m_max, ps.dtype)
     for k in range(start.size - 1):
         a, e = start[k], start[k + 1]
         m = e - a
@@ -137,10 +140,8 @@ def _order_buckets(ts, gs, ps, start):
         for j in range(B):
             s2[j + 1] += s2[j]
         pos = s2[:B].copy()
-        _place(ts[a:e], gs[a:e], 0, lo, scale, B, pos, ts2, gs2, ps2)
-        for j in range(m):                       # the local order, back in place
-            pp[j] = ps[a + ps2[j]]
-        ts[a:e], gs[a:e], ps[a:e] = ts2[:m], gs2[:m], pp[:m]
+        _place(ts[a:e], gs[a:e], ps[a:e], 0, lo, scale, B, pos, ts2, gs2, ps2)
+        ts[a:e], gs[a:e], ps[a:e] = ts2[:m], gs2[:m], ps2[:m]
         for j in range(B):
             if s2[j + 1] - s2[j] > 1:
                 _order_small(ts, gs, ps, a + s2[j], a + s2[j + 1])
@@ -155,31 +156,34 @@ def _compiled_fits(ts: list[np.ndarray], gs: list[np.ndarray]) -> bool:
             and len({g.dtype for g in gs}) == 1 and gs[0].dtype.kind in "iu")
 
 
-def _bucket_order(parts: list[tuple[np.ndarray, np.ndarray]]
+def _bucket_order(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]]
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(perm, t[perm], g[perm])`` of the concatenated ``(t, g)`` parts (finite ``t``),
-    ``perm = np.lexsort((g, t))`` (module docstring); the parts are read in place."""
-    n = sum(t.size for t, _ in parts)
-    lo = min(t.min() for t, _ in parts if t.size)
-    hi = max(t.max() for t, _ in parts if t.size)
+    """``(q[perm], t[perm], g[perm])`` of the concatenated ``(t, g, q)`` parts (finite
+    ``t``), ``perm = np.lexsort((g, t))`` (module docstring); the parts are read in place.
+
+    ``q`` is the payload carried along: one column of the same dtype in every part, or
+    ``None`` in every part for the permutation itself (``q[perm]`` is then ``perm``)."""
+    n = sum(t.size for t, _, _ in parts)
+    lo = min(t.min() for t, _, _ in parts if t.size)
+    hi = max(t.max() for t, _, _ in parts if t.size)
     if not (np.isfinite(lo) and np.isfinite(hi)):
         raise ValueError("time order: expected finite time stamps, got NaN or inf")
-    gdt = parts[0][1].dtype
-    ts, gs, ps = np.empty(n), np.empty(n, gdt), np.empty(n, np.int64)
+    qdt = np.int64 if parts[0][2] is None else parts[0][2].dtype
+    ts, gs, qs = np.empty(n), np.empty(n, parts[0][1].dtype), np.empty(n, qdt)
     B = min(max(1, n // 16384), 4096) if hi > lo else 1
     scale = B / (hi - lo) if hi > lo else 0.0
     if not np.isfinite(scale):                   # a subnormal spread: one bucket
         B, scale = 1, 0.0
     start = np.zeros(B + 1, np.int64)
-    for t, _ in parts:
+    for t, _, _ in parts:
         _count(t, lo, scale, B, start)
     np.cumsum(start, out=start)
-    pos, first = start[:-1].copy(), 0
-    for t, g in parts:
-        _place(t, g, first, lo, scale, B, pos, ts, gs, ps)
+    pos, first, index = start[:-1].copy(), 0, np.zeros(0, np.int64)
+    for t, g, q in parts:
+        _place(t, g, index if q is None else q, first, lo, scale, B, pos, ts, gs, qs)
         first += t.size
-    _order_buckets(ts, gs, ps, start)
-    return ps, ts, gs
+    _order_buckets(ts, gs, qs, start)
+    return qs, ts, gs
 
 
 def time_order(t: np.ndarray, g: np.ndarray) -> np.ndarray:
@@ -200,7 +204,7 @@ def time_order(t: np.ndarray, g: np.ndarray) -> np.ndarray:
     t = np.asarray(t, dtype=np.float64)
     g = np.asarray(g)
     if _compiled_fits([t], [g]):
-        return _bucket_order([(t, g)])[0]
+        return _bucket_order([(t, g, None)])[0]
     if t.size <= 4 * CHUNK:
         return _order_chunk(t, g).astype(np.int64, copy=False)
     perm, bounds = _buckets(t)
@@ -216,7 +220,8 @@ def merge_by_time(parts: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]
 
     ``parts``: tuples of equally long arrays, ``g`` first and ``t`` second. Returns the
     ordered concatenation (one array per tuple position). Large inputs are moved once
-    into coarse time buckets, then each bucket is ordered in place (in cache).
+    into coarse time buckets, then each bucket is ordered in place (in cache); with
+    numba, a single extra column travels with the events through both passes.
 
     >>> g, t, p = merge_by_time([(np.array([1, 2]), np.array([.5, .1]), np.array([1, -1])),
     ...                          (np.array([0]), np.array([.5]), np.array([1]))])
@@ -224,7 +229,10 @@ def merge_by_time(parts: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]
     ([2, 0, 1], [0.1, 0.5, 0.5], [-1, 1, 1])
     """
     if _compiled_fits([p[1] for p in parts], [p[0] for p in parts]):
-        perm, t, g = _bucket_order([(part[1], part[0]) for part in parts])
+        if len(parts[0]) == 3 and len({np.asarray(p[2]).dtype for p in parts}) == 1:
+            q, t, g = _bucket_order([(p[1], p[0], np.asarray(p[2])) for p in parts])
+            return g, t, q                       # the one extra column carried along
+        perm, t, g = _bucket_order([(part[1], part[0], None) for part in parts])
         rest = (np.concatenate([part[i] for part in parts]) for i in range(2, len(parts[0])))
         return (g, t, *(c[perm] for c in rest))
     cols = [np.concatenate([part[i] for part in parts]) for i in range(len(parts[0]))]
