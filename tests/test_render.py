@@ -366,6 +366,37 @@ def test_render_image_matches_forward_on_the_same_rays() -> None:
         renderer.render_image(field, cams, 0, 0.5, bg_image=torch.zeros(4, 4, 3))
 
 
+def test_renders_without_autograd_query_the_field_in_blocks_of_query_rows() -> None:
+    """``query_rows`` caps the rows of every field call of a full-image render (the
+    same image up to rounding); a call under autograd is never split."""
+    from eventrecon.fields import NeRFField
+
+    torch.manual_seed(0)
+    field = NeRFField(depth=2, width=32, skip=-1, remap_width=32, colour_width=16,
+                      anneal_steps=0)
+    seen: list[int] = []
+    field.register_forward_hook(lambda _m, inputs, _o: seen.append(int(inputs[0].shape[0])))
+    cams = ring_rig(2, 12, 9, radius=2.5, fov_deg=30)
+    images = {}
+    for rows in (0, 100):
+        seen.clear()
+        renderer = Renderer(16, 16, chunk=4096, query_rows=rows)
+        images[rows] = renderer.render_image(field, cams, 1, 0.5, bg_image=0.25)["rgb"]
+        calls = list(seen)
+        if rows:
+            assert max(calls) <= padded_rows(100, 8) == 128 and len(calls) > 4
+        else:
+            assert max(calls) > 1000                 # one call per level of the chunk
+    assert torch.allclose(images[0], images[100], atol=1e-6)
+    seen.clear()
+    o, d = cams.image_rays(1)
+    Renderer(16, 16, query_rows=100)(field, o, d, torch.full((o.shape[0], 1), 0.5),
+                                     torch.full((o.shape[0], 3), 0.25))
+    assert max(seen) > 1000                          # autograd: one call, never split
+    with pytest.raises(InputError, match="query_rows"):
+        Renderer(16, 16, query_rows=-1)
+
+
 def test_random_draws_come_from_the_generators_device_and_move_to_the_rays() -> None:
     """A CPU ``(seed, step)`` generator with rays on another device (a GPU in training):
     the draws are made on the CPU and moved, identical to the CPU result. ``meta`` stands

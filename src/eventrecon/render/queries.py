@@ -41,12 +41,24 @@ def padded_rows(m: int, per_octave: int) -> int:
     return max(m, 64 * math.ceil(size / 64))
 
 
-def query_field(field: Field, x: Tensor, t: Tensor, per_octave: int = 8
+def query_field(field: Field, x: Tensor, t: Tensor, per_octave: int = 8, max_rows: int = 0
                 ) -> tuple[Tensor, Tensor]:
     """``field(x [M, 3], t [M, 1])`` → ``σ [M]``, ``rgb [M, 3]``, evaluated on
     :func:`padded_rows` rows: the extra rows repeat the first sample and are cut off
-    again, so values and gradients are those of the ``M`` samples alone."""
+    again, so values and gradients are those of the ``M`` samples alone.
+
+    ``max_rows > 0``: without autograd, the samples go to the field in blocks of at most
+    ``max_rows`` (each padded as above). A field's samples are independent, so the values
+    are the same up to rounding. Why: on CPU one call on ``M ≳ 10^5`` rows runs about twice
+    as slow per sample as blocks of ~16 k (the 4×64 NeRF MLP, forward, one thread: 1.9–2.0
+    µs per sample up to 65 536 rows, 4.1 at 131 072, 4.7 at 524 288), because the
+    activations no longer stay in cache. With autograd the call is never split: the
+    training step's calls are small, and its numerics stay those of one call."""
     m = x.shape[0]
+    if 0 < max_rows < m and not torch.is_grad_enabled():
+        parts = [query_field(field, x[a:a + max_rows], t[a:a + max_rows], per_octave)
+                 for a in range(0, m, max_rows)]
+        return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     rows = padded_rows(m, per_octave)
     if rows > m:
         x = torch.cat([x, x[:1].expand(rows - m, -1)])

@@ -146,6 +146,9 @@ class Renderer(nn.Module):
             transmittance below which a ray stops (``skip="grid"``).
         query_buckets: the field is called on row counts rounded up to this many sizes
             per doubling (:func:`padded_rows`; 0: the exact count). Results are identical.
+        query_rows: renders without autograd (full images, evaluation) send at most this
+            many samples per field call (:func:`~eventrecon.render.queries.query_field`;
+            0: one call per group of samples). Results are the same up to rounding.
     """
 
     def __init__(
@@ -163,6 +166,7 @@ class Renderer(nn.Module):
         march_chunks: int = 4,
         stop_transmittance: float = 1e-4,
         query_buckets: int = 8,
+        query_rows: int = 16384,
     ) -> None:
         super().__init__()
         if n_coarse < 1:
@@ -171,8 +175,9 @@ class Renderer(nn.Module):
             raise InputError("renderer", "n_fine", "an integer >= 0", n_fine)
         if chunk < 1:
             raise InputError("renderer", "chunk", "an integer >= 1", chunk)
-        if query_buckets < 0:
-            raise InputError("renderer", "query_buckets", "an integer >= 0", query_buckets)
+        for name, value in (("query_buckets", query_buckets), ("query_rows", query_rows)):
+            if value < 0:
+                raise InputError("renderer", name, "an integer >= 0", value)
         if skip not in ("none", "grid"):
             raise InputError("config", "render.skip", "none or grid", skip)
         self.n_coarse, self.n_fine, self.chunk = int(n_coarse), int(n_fine), int(chunk)
@@ -181,7 +186,7 @@ class Renderer(nn.Module):
         self.clip_scale = float(clip_scale)
         self.march_chunks = max(1, int(march_chunks))
         self.stop_transmittance = float(stop_transmittance)
-        self.query_buckets = int(query_buckets)
+        self.query_buckets, self.query_rows = int(query_buckets), int(query_rows)
         self.occupancy = (OccupancyGrid(*self.cylinder.box(), **(occupancy or {}))
                           if skip == "grid" else None)
         #: samples sent to the field since the last reset (a plain counter for logging:
@@ -216,13 +221,13 @@ class Renderer(nn.Module):
             self.field_inputs += n * k
             sigma, rgb = query_field(field, pts.reshape(n * k, 3),
                                      t[:, None, :].expand(n, k, 1).reshape(n * k, 1),
-                                     self.query_buckets)
+                                     self.query_buckets, self.query_rows)
             return sigma.reshape(n, k) * inside, rgb.reshape(n, k, 3)
         idx = (keep & inside).reshape(-1).nonzero().squeeze(1)
         self.field_inputs += int(idx.numel())
         tt = t[:, None, :].expand(n, k, 1).reshape(n * k, 1)
         sig_k, rgb_k = query_field(field, pts.reshape(n * k, 3)[idx], tt[idx],
-                                   self.query_buckets)
+                                   self.query_buckets, self.query_rows)
         sigma = pts.new_zeros(n * k, dtype=sig_k.dtype).index_put((idx,), sig_k)
         rgb = pts.new_zeros(n * k, 3, dtype=rgb_k.dtype).index_put((idx,), rgb_k)
         return sigma.reshape(n, k), rgb.reshape(n, k, 3)
