@@ -139,6 +139,40 @@ def test_nerf_field_is_the_authors_layers_and_initialisation() -> None:
     assert torch.allclose(got[0], sigma, atol=1e-6) and torch.allclose(got[1], rgb, atol=1e-6)
 
 
+def _explicit_forward(f: NeRFField, xyz: torch.Tensor, t: torch.Tensor):
+    """The field written out plainly: every activation ``2·ReLU`` as a multiplication."""
+    relu2 = lambda x: torch.relu(x) * 2.0  # noqa: E731
+    enc = f.encode(xyz, t)
+    h = enc
+    for i, layer in enumerate(f.layers):
+        h = relu2(layer(h))
+        if i == f.skip:
+            h = torch.cat([enc, h], dim=-1)
+    sigma = nn.functional.softplus(f.density(h).squeeze(-1) + f.density_shift)
+    return sigma, torch.sigmoid(f.colour_out(relu2(f.colour_hidden(f.colour_remap(h)))))
+
+
+@pytest.mark.parametrize("sizes", [dict(depth=4, width=64, skip=-1, remap_width=64,
+                                        colour_width=32),
+                                   dict(depth=8, width=32, skip=4, remap_width=32,
+                                        colour_width=16)])
+def test_the_folded_factor_two_gives_the_explicit_relu2_bit_for_bit(sizes) -> None:
+    """``2·ReLU`` folded into the next layer's ``addmm`` (``alpha = 2``): values and
+    gradients identical to the explicit multiplication, with and without the skip."""
+    torch.manual_seed(3)
+    f = NeRFField(**sizes, anneal_steps=0)
+    xyz, t = torch.rand(777, 3) * 2 - 1, torch.rand(777, 1)
+    results = []
+    for forward in (f.forward, lambda a, b: _explicit_forward(f, a, b)):
+        f.zero_grad()
+        sigma, rgb = forward(xyz, t)
+        (sigma.square().sum() + (rgb * torch.arange(3.0)).sum()).backward()
+        results.append([sigma.detach(), rgb.detach(), *(p.grad.clone() for p in f.parameters())])
+    assert len(results[0]) == 2 + len(list(f.parameters()))
+    for a, b in zip(*results):
+        assert torch.equal(a, b)
+
+
 def test_config_instantiates_the_field_and_carries_the_optimiser() -> None:
     from eventrecon.build import build_field
 

@@ -26,6 +26,13 @@ authors' network the remap is concatenated with a zeroed view-direction encoding
 features before the hidden colour layer, which changes nothing but that layer's default
 initialisation range (``1/sqrt(fan_in)`` with ``fan_in = 256 + 27``): it is initialised
 with that range here.
+
+The factor 2 of ``2·ReLU`` is not applied as a multiplication: the layer after it gets
+it as ``addmm``'s ``alpha`` (``W (2 r) + b = 2 (W r) + b``). Scaling by a power of two is
+exact in floating point, so outputs and gradients are bit for bit those of the explicit
+``2·ReLU`` (``tests/test_fields.py``), and a full-size pass over the activations goes
+away each way: the 4×64 MLP's forward + backward on 35 840 samples took 152 instead of
+180 ms (one thread, 2-core AMD EPYC).
 """
 
 from __future__ import annotations
@@ -49,9 +56,10 @@ __all__ = ["NeRFField"]
 ZEROED_VIEWDIR_FEATURES = 27
 
 
-def _relu2(x: Tensor) -> Tensor:
-    """``2·ReLU(x)``: the authors' activation."""
-    return torch.relu(x) * 2.0
+def _linear(layer: nn.Linear, h: Tensor, scale: float) -> Tensor:
+    """``layer(scale·h)`` for ``h [N, in]``, computed as ``b + scale·(h Wᵀ)`` in one
+    ``addmm`` (``scale`` 1 or 2: exact either way)."""
+    return torch.addmm(layer.bias, h, layer.weight.t(), alpha=scale)
 
 
 class NeRFField(Field):
@@ -131,13 +139,14 @@ class NeRFField(Field):
             ``(sigma [N] ≥ 0, rgb [N, 3] in (0, 1))``.
         """
         enc = self.encode(xyz, t)
-        h = enc
+        h, scale = enc, 1.0                      # the activation is scale·h (module docstring)
         for i, layer in enumerate(self.layers):
-            h = _relu2(layer(h))
+            h, scale = torch.relu(_linear(layer, h, scale)), 2.0
             if i == self.skip:
-                h = torch.cat([enc, h], dim=-1)
-        sigma = F.softplus(self.density(h).squeeze(-1) + self.density_shift)
-        rgb = torch.sigmoid(self.colour_out(_relu2(self.colour_hidden(self.colour_remap(h)))))
+                h, scale = torch.cat([enc, h * 2.0], dim=-1), 1.0
+        sigma = F.softplus(_linear(self.density, h, scale).squeeze(-1) + self.density_shift)
+        hidden = torch.relu(self.colour_hidden(_linear(self.colour_remap, h, scale)))
+        rgb = torch.sigmoid(_linear(self.colour_out, hidden, 2.0))
         return sigma, rgb
 
     def callbacks(self) -> list[Any]:
