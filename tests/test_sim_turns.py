@@ -125,6 +125,19 @@ def test_time_order_equals_lexsort_with_ties(n, decimals):
                                   (g[half:], t[half:], p[half:], np.arange(half, n))])
     np.testing.assert_array_equal(P2, p[expect])
     np.testing.assert_array_equal(I2, expect)
+    for col in (rng.integers(0, 2**64 - 1, n, dtype=np.uint64),   # carried exactly
+                rng.random(n).astype(np.float16)):                 # gathered instead
+        *_, Q = merge_by_time([(g[:half], t[:half], col[:half]), (g[half:], t[half:], col[half:])])
+        np.testing.assert_array_equal(Q, col[expect])
+        assert Q.dtype == col.dtype
+
+
+def test_merge_by_time_refuses_columns_of_unequal_length():
+    n = 5 * CHUNK
+    g, t, p = np.zeros(n, np.int64), np.linspace(0, 1, n), np.ones(n, np.int8)
+    for bad in (p[:0], p[:-1]):
+        with pytest.raises(ValueError, match="part 0 has columns of lengths"):
+            merge_by_time([(g, t, bad)])
 
 
 def test_frame_events_equal_crossings_then_a_global_sort():

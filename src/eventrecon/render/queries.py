@@ -56,7 +56,8 @@ def query_field(field: Field, x: Tensor, t: Tensor, per_octave: int = 8, max_row
     training step's calls are small, and its numerics stay those of one call."""
     m = x.shape[0]
     if 0 < max_rows < m and not torch.is_grad_enabled():
-        parts = [query_field(field, x[a:a + max_rows], t[a:a + max_rows], per_octave)
+        parts = [query_field(field, x[a:a + max_rows], t[a:a + max_rows],   # pad the last
+                             per_octave if a + max_rows >= m else 0)           # block only
                  for a in range(0, m, max_rows)]
         return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
     rows = padded_rows(m, per_octave)

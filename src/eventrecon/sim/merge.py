@@ -87,15 +87,18 @@ def _count(t, lo, scale, B, start):
 
 
 @njit
-def _place(t, g, q, first, lo, scale, B, pos, ts, gs, qs):
+def _place(t, g, q, index, first, lo, scale, B, pos, ts, gs, qs):
     """Stable counting-sort placement of ``(t, g)`` with their payload at the running
-    bucket positions ``pos``: ``q[i]``, or the index ``first + i`` where ``q`` is empty."""
-    index = q.size == 0
+    bucket positions ``pos``: the index ``first + i`` where ``index``, else ``q[i]``
+    (two stores, so that each keeps its own integer or float type)."""
     for i in range(t.size):
         k = max(min(np.int64((t[i] - lo) * scale), B - 1), 0)
         j = pos[k]
         ts[j], gs[j] = t[i], g[i]
-        qs[j] = first + i if index else q[i]
+        if index:
+            qs[j] = first + i
+        else:
+            qs[j] = q[i]
         pos[k] += 1
 
 
@@ -140,11 +143,24 @@ def _order_buckets(ts, gs, ps, start):
         for j in range(B):
             s2[j + 1] += s2[j]
         pos = s2[:B].copy()
-        _place(ts[a:e], gs[a:e], ps[a:e], 0, lo, scale, B, pos, ts2, gs2, ps2)
+        _place(ts[a:e], gs[a:e], ps[a:e], False, 0, lo, scale, B, pos, ts2, gs2, ps2)
         ts[a:e], gs[a:e], ps[a:e] = ts2[:m], gs2[:m], ps2[:m]
         for j in range(B):
             if s2[j + 1] - s2[j] > 1:
                 _order_small(ts, gs, ps, a + s2[j], a + s2[j + 1])
+
+
+def _carried(parts: list[tuple[np.ndarray, ...]]) -> bool:
+    """Whether the one extra column of ``(g, t, q)`` parts can travel with the events:
+    1-D arrays as long as their ``t``, one integer, bool or float32/64 dtype. Any other
+    column (several, 2-D, dates, strings, half floats) is gathered by the order instead."""
+    if len(parts[0]) != 3:
+        return False
+    qs = [p[2] for p in parts]
+    return (all(isinstance(q, np.ndarray) and q.ndim == 1 and q.shape == p[1].shape
+                for q, p in zip(qs, parts))
+            and len({q.dtype for q in qs}) == 1
+            and (qs[0].dtype.kind in "iub" or qs[0].dtype in (np.float32, np.float64)))
 
 
 def _compiled_fits(ts: list[np.ndarray], gs: list[np.ndarray]) -> bool:
@@ -178,9 +194,9 @@ def _bucket_order(parts: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]]
     for t, _, _ in parts:
         _count(t, lo, scale, B, start)
     np.cumsum(start, out=start)
-    pos, first, index = start[:-1].copy(), 0, np.zeros(0, np.int64)
+    pos, first, none = start[:-1].copy(), 0, np.zeros(0, np.int64)
     for t, g, q in parts:
-        _place(t, g, index if q is None else q, first, lo, scale, B, pos, ts, gs, qs)
+        _place(t, g, none if q is None else q, q is None, first, lo, scale, B, pos, ts, gs, qs)
         first += t.size
     _order_buckets(ts, gs, qs, start)
     return qs, ts, gs
@@ -228,9 +244,13 @@ def merge_by_time(parts: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]
     >>> g.tolist(), t.tolist(), p.tolist()
     ([2, 0, 1], [0.1, 0.5, 0.5], [-1, 1, 1])
     """
+    for k, part in enumerate(parts):
+        if len({len(c) for c in part}) > 1:
+            raise ValueError(f"merge_by_time: part {k} has columns of lengths "
+                             f"{[len(c) for c in part]}; expected one length per part")
     if _compiled_fits([p[1] for p in parts], [p[0] for p in parts]):
-        if len(parts[0]) == 3 and len({np.asarray(p[2]).dtype for p in parts}) == 1:
-            q, t, g = _bucket_order([(p[1], p[0], np.asarray(p[2])) for p in parts])
+        if _carried(parts):
+            q, t, g = _bucket_order([(p[1], p[0], p[2]) for p in parts])
             return g, t, q                       # the one extra column carried along
         perm, t, g = _bucket_order([(part[1], part[0], None) for part in parts])
         rest = (np.concatenate([part[i] for part in parts]) for i in range(2, len(parts[0])))
