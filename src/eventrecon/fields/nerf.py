@@ -31,8 +31,9 @@ The factor 2 of ``2·ReLU`` is not applied as a multiplication: the layer after 
 it as ``addmm``'s ``alpha`` (``W (2 r) + b = 2 (W r) + b``). Scaling by a power of two is
 exact in floating point, so outputs and gradients are bit for bit those of the explicit
 ``2·ReLU`` (``tests/test_nerf_field.py``), and a full-size pass over the activations goes
-away each way: the 4×64 MLP's forward + backward on 35 840 samples took 152 instead of
-180 ms (one thread, 2-core AMD EPYC). The linear layers are therefore applied through
+away each way: the 4×64 field's forward + backward on 35 840 samples took 216 instead of
+251 ms at one thread and 133 instead of 150 ms at two (2-core AMD EPYC; paired ratio
+1.07 over 20 alternated repeats). The linear layers are therefore applied through
 their parameters, not called as modules: hooks registered on them do not run.
 """
 

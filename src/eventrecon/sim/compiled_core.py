@@ -49,7 +49,6 @@ from eventrecon.sim.paths import refine_turns
 __all__ = ["AVAILABLE", "run_compiled"]
 
 
-
 @njit
 def _plan(t_last, h, grow, m, M, max_step):
     """Sample times of each pixel's next block, flattened.

@@ -151,14 +151,14 @@ def _order_buckets(ts, gs, ps, start):
 
 
 def _carried(parts: list[tuple[np.ndarray, ...]]) -> bool:
-    """Whether the one extra column of ``(g, t, q)`` parts can travel with the events:
-    1-D arrays as long as their ``t``, one integer, bool or float32/64 dtype. Any other
-    column (several, 2-D, dates, strings, half floats) is gathered by the order instead."""
+    """Whether the one extra column of ``(g, t, q)`` parts (lengths already checked by
+    :func:`merge_by_time`) can travel with the events: 1-D arrays of one integer, bool or
+    float32/64 dtype. Any other column (several, 2-D, dates, strings, half floats) is
+    gathered by the order instead."""
     if len(parts[0]) != 3:
         return False
     qs = [p[2] for p in parts]
-    return (all(isinstance(q, np.ndarray) and q.ndim == 1 and q.shape == p[1].shape
-                for q, p in zip(qs, parts))
+    return (all(isinstance(q, np.ndarray) and q.ndim == 1 for q in qs)
             and len({q.dtype for q in qs}) == 1
             and (qs[0].dtype.kind in "iub" or qs[0].dtype in (np.float32, np.float64)))
 
