@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import struct
@@ -456,3 +457,68 @@ def test_a_table_whose_runs_of_a_scene_used_different_datasets_says_so(tmp_path)
     assert note == ("`spheres` runs on several datasets (records' data_id): 1 on `spheres-aa`; "
                     "2 on `spheres-bb`; 1 unrecorded (made before records named their data). "
                     "Cells are not yet all re-run on one.")
+
+
+def test_pairs_to_resolve_is_the_smallest_n_whose_interval_is_narrow_enough():
+    from scipy.stats import t as student
+
+    from eventrecon.report.stats import MeanCI, mean_ci, pairs_to_resolve
+
+    for values, effect in (([0.1, 0.5, -0.2, 0.3], 0.25), ([1.0, 2.0], 3.0),
+                           ([0.0, 1.0, 0.0, 1.0, 0.5], 0.05), ([2.0, 2.0, 2.0], 0.1)):
+        d = mean_ci(values)
+        sd = float(np.std(values, ddof=1))
+        brute = next(n for n in range(2, 10**6)
+                     if student.ppf(0.975, n - 1) * sd / math.sqrt(n) < abs(effect))
+        assert pairs_to_resolve(d, effect) == brute
+        assert pairs_to_resolve(d, -effect) == brute          # only |effect| matters
+    assert pairs_to_resolve(mean_ci([1.0]), 0.5) is None      # no spread from one value
+    assert pairs_to_resolve(mean_ci([0.0, 1.0]), 0.0) is None
+    assert pairs_to_resolve(mean_ci([0.0, 1.0]), 1e-6, limit=1000) is None
+    assert pairs_to_resolve(MeanCI(0.0, 0.0, 3), 0.1) == 2    # no spread at all
+
+
+def test_findings_set_the_papers_difference_beside_ours(tmp_path):
+    from eventrecon.report.findings import (
+        check_findings,
+        row_differences,
+        row_differences_markdown,
+    )
+    from eventrecon.report.stats import pairs_to_resolve
+
+    jobs = []
+    for seed in range(4):
+        for scene in ("spheres", "static_lego"):
+            jobs += [_metrics(scene, psnr=25.0, seed=seed, experiment="table3"),
+                     _metrics(scene, model="ngp", psnr=25.0 - 0.1 * (seed + 1), seed=seed,
+                              experiment="table3"),
+                     # w/o L_sparsity: ±1 dB around the full model, no effect on average
+                     _metrics(scene, loss="no_sparsity", psnr=25.0 + (-1) ** seed, seed=seed,
+                              experiment="table3")]
+            if scene == "spheres":
+                jobs.append(_metrics(scene, loss="no_event", psnr=24.0 - 0.1 * seed, seed=seed,
+                                     experiment="table3"))
+    runs = collect_runs([_sweep(tmp_path, jobs).parent.parent])
+    diffs = {d.row: d for d in row_differences(runs)}
+    paper3 = PAPER_TABLES["table3"]
+    # the paper's Full − NGP on the columns of our two scenes, Spheres and Static Lego
+    want = sum(paper3.value("Full Model", c)[0] - paper3.value("NGP", c)[0]
+               for c in ("Spheres", "Static Lego")) / 2
+    ngp = diffs["NGP"]
+    assert ngp.paper == pytest.approx(want) and want == pytest.approx(4.6915)
+    assert ngp.all_scenes.mean == pytest.approx(0.25) and ngp.needed == 2
+    sparsity = diffs["w/o L_sparsity"]
+    assert sparsity.paper == pytest.approx((29.765 - 29.358 + 23.863 - 23.698) / 2)
+    assert sparsity.needed == pairs_to_resolve(sparsity.all_scenes, sparsity.paper)
+    assert sparsity.needed > sparsity.all_scenes.n     # ±1 dB spread hides a 0.29 dB effect
+    md = row_differences_markdown(list(diffs.values()))
+    assert "| NGP | **0.25 ± " in md and "| 4.69 | **no** | met |" in md
+    assert f"| 0.29 | yes | {sparsity.needed} |" in md
+    found = {f.claim: f for f in check_findings(runs)}
+    event = found["Removing L_event hurts on scenes with events (Tab. 3)"]
+    # only spheres has w/o L_event and motion: the paper's Spheres cells
+    assert event.paper == pytest.approx(29.765 - 27.744) and event.diff.n == 4
+    best = found["Full model best on average (Tab. 3)"]
+    # the closest row (w/o L_sparsity, mean 0) decides; the paper's difference is its own
+    assert "w/o L_sparsity" in best.cells and best.paper == pytest.approx(sparsity.paper)
+    assert best.needed == sparsity.needed

@@ -24,6 +24,12 @@ The claims (supplementary Sec. 12–15 and the captions of Tab. 3–7):
    within ±0.5 dB, the paper's own spread over 0.5–100 FPS being 0.4 dB);
 7. the model does not diverge with three views (Tab. 6: above the empty field).
 
+Beside each verdict: the paper's own difference for the same comparison (its cells for
+the columns our scenes stand for) and how many (scene, seed) pairs it would take, at the
+spread of ours, for the paper's difference to lie outside the noise
+(:func:`.stats.pairs_to_resolve`) -- an inconclusive verdict with far fewer pairs than that
+is a comparison too small to see the paper's effect, not evidence against it.
+
 Beside the claims: the full model against each Tab. 3 row (:func:`row_differences`), and
 every cell with collapsed runs set beside the paper's value for that cell
 (:func:`collapsed_cells`): a collapse is expected only where the paper's own run failed.
@@ -36,9 +42,9 @@ from dataclasses import dataclass
 
 from eventrecon.report.format import fmt, markdown_table
 from eventrecon.report.paper import PAPER_TABLES
-from eventrecon.report.rows import ROW_OF, method_row
+from eventrecon.report.rows import ROW_OF, method_row, setting_label
 from eventrecon.report.runs import Run
-from eventrecon.report.stats import MeanCI, mean_ci
+from eventrecon.report.stats import MeanCI, mean_ci, pairs_to_resolve
 from eventrecon.report.tables import REAL_SCENE, SCENE_TO_PAPER
 
 __all__ = ["Finding", "check_findings", "findings_markdown", "RowDifference",
@@ -47,6 +53,8 @@ __all__ = ["Finding", "check_findings", "findings_markdown", "RowDifference",
 
 #: ± dB within which a difference "barely matters" (claim 6).
 FPS_TOLERANCE_DB = 0.5
+
+_FPS_CLAIM = "RGB frame rate barely matters (Tab. 5)"
 
 #: A paper cell this many dB or more below the best cell of its column counts as a failure
 #: of the paper's own run (e.g. Static Lego: w/o L_acc 16.06 and only L_event 16.50 against
@@ -64,6 +72,11 @@ class Finding:
     metric: str
     cells: str
     note: str = ""
+    #: the paper's difference for the same comparison and metric (``None``: no such cells)
+    paper: float | None = None
+    #: pairs needed, at our spread, to resolve ``paper`` (for "barely matters": to fit the
+    #: interval inside the tolerance); ``None`` where that cannot be said
+    needed: int | None = None
 
 
 def _scored(runs: Sequence[Run], pick: Callable[[Run], bool]) -> dict[tuple, Run]:
@@ -88,6 +101,32 @@ def paired(runs: Sequence[Run], a: Callable[[Run], bool], b: Callable[[Run], boo
              and (va := ra[k].metric(metric)) is not None
              and (vb := rb[k].metric(metric)) is not None]
     return (mean_ci(diffs) if diffs else None), lost
+
+
+def _pair_scenes(runs: Sequence[Run], a: Callable[[Run], bool], b: Callable[[Run], bool]
+                 ) -> list[str]:
+    """The scenes of the pairs :func:`paired` forms."""
+    ra, rb = _scored(runs, a), _scored(runs, b)
+    return sorted({k[0] for k in ra.keys() & rb.keys() if ra[k].version == rb[k].version})
+
+
+def paper_difference(runs: Sequence[Run], table: str, labels: tuple[str, str],
+                     a: Callable[[Run], bool], b: Callable[[Run], bool],
+                     metric: str) -> float | None:
+    """The paper's ``labels[0] − labels[1]`` in ``metric``, averaged over the paper
+    columns that the scenes of our pairs stand for (``None`` where it has none)."""
+    columns = [c for sc in _pair_scenes(runs, a, b) if (c := _paper_column(table, sc))]
+    return PAPER_TABLES[table].difference(*labels, metric, columns)
+
+
+def _beside_paper(f: Finding, runs: Sequence[Run], table: str, labels: tuple[str, str],
+                  a: Callable[[Run], bool], b: Callable[[Run], bool]) -> Finding:
+    """``f`` with the paper's difference for its comparison and the pairs that would
+    resolve it at our spread."""
+    f.paper = paper_difference(runs, table, labels, a, b, f.metric.lower())
+    if f.diff is not None and f.paper is not None:
+        f.needed = pairs_to_resolve(f.diff, f.paper)
+    return f
 
 
 def _verdict(d: MeanCI | None, sign: int = 1) -> str:
@@ -131,20 +170,22 @@ def _against_each(runs: Sequence[Run], table: str, full: str, metric: str = "psn
             for lab in labels]
 
 
-def _full_vs_each(runs: Sequence[Run], table: str, full: str, metric: str, sign: int
-                  ) -> tuple[str, MeanCI | None, str, int]:
+def _full_vs_each(runs: Sequence[Run], table: str, full: str, metric: str, sign: int,
+                  claim: str) -> Finding:
     """The full row against every other row: holds if better than each, fails if some row
-    is better; the evidence shown is the closest competitor."""
+    is better; the evidence shown is the closest competitor, beside the paper's."""
     each = _against_each(runs, table, full, metric)
     lost = sum(n_lost for _, _, n_lost in each)
     results = [(lab, d) for lab, d, _ in each if d is not None]
     if not results:
-        return "untested", None, "", lost
+        return Finding(claim, "untested", None, metric.upper(), "", _lost(lost))
     verdicts = [_verdict(d, sign) for _, d in results]
     lab, d = min(results, key=lambda x: sign * x[1].mean)
     verdict = ("fails" if "fails" in verdicts else "holds" if all(v == "holds" for v in verdicts)
                else "inconclusive")
-    return verdict, d, f"`{full}` − `{lab}` (closest of {len(results)} rows)", lost
+    f = Finding(claim, verdict, d, metric.upper(),
+                f"`{full}` − `{lab}` (closest of {len(results)} rows)", _lost(lost))
+    return _beside_paper(f, runs, table, (full, lab), _row(table, full), _row(table, lab))
 
 
 def check_findings(runs: Sequence[Run]) -> list[Finding]:
@@ -152,33 +193,39 @@ def check_findings(runs: Sequence[Run]) -> list[Finding]:
     out: list[Finding] = []
     t3, t4, t5, t6, t7 = (_in(f"table{k}", runs) for k in range(3, 8))
 
-    v, d, cells, lost = _full_vs_each(t3, "table3", "Full Model", "psnr", +1)
-    out.append(Finding("Full model best on average (Tab. 3)", v, d, "PSNR", cells,
-                       _lost(lost)))
+    out.append(_full_vs_each(t3, "table3", "Full Model", "psnr", +1,
+                             "Full model best on average (Tab. 3)"))
 
-    d, lost = paired(_moving(t3), _row("table3", "Full Model"), _row("table3", "w/o L_event"))
-    out.append(Finding("Removing L_event hurts on scenes with events (Tab. 3)", _verdict(d), d,
-                       "PSNR", "`Full Model` − `w/o L_event`, scenes with motion", _lost(lost)))
+    labels = ("Full Model", "w/o L_event")
+    rows = (_row("table3", labels[0]), _row("table3", labels[1]))
+    d, lost = paired(_moving(t3), *rows)
+    out.append(_beside_paper(
+        Finding("Removing L_event hurts on scenes with events (Tab. 3)", _verdict(d), d,
+                "PSNR", "`Full Model` − `w/o L_event`, scenes with motion", _lost(lost)),
+        _moving(t3), "table3", labels, *rows))
 
     out += _decay_findings(t4)
 
     real4 = [r for r in t4 if r.scene == REAL_SCENE]
-    v, d, cells, lost = _full_vs_each(real4, "table4", "Our Full Model (Final)", "ssim", +1)
-    out.append(Finding("SSIM favours the full model on the real-like scene (Tab. 4)", v, d,
-                       "SSIM", cells, _lost(lost)))
+    out.append(_full_vs_each(real4, "table4", "Our Full Model (Final)", "ssim", +1,
+                             "SSIM favours the full model on the real-like scene (Tab. 4)"))
 
-    for table, name in ((t7, "Tab. 7"), (t6, "Tab. 6")):
+    for key, table, name in (("table7", t7, "Tab. 7"), ("table6", t6, "Tab. 6")):
         views = sorted({r.views for r in table if r.views is not None})
         if len(views) >= 2:
-            d, lost = paired(table, _views(views[-1]), _views(views[0]))
-            out.append(Finding(f"More views help ({name})", _verdict(d), d, "PSNR",
-                               f"{views[-1]} views − {views[0]} views", _lost(lost)))
+            ends = (_views(views[-1]), _views(views[0]))
+            d, lost = paired(table, *ends)
+            out.append(_beside_paper(
+                Finding(f"More views help ({name})", _verdict(d), d, "PSNR",
+                        f"{views[-1]} views − {views[0]} views", _lost(lost)),
+                table, key, (setting_label(views[-1]), setting_label(views[0])), *ends))
         else:
             out.append(Finding(f"More views help ({name})", "untested", None, "PSNR", ""))
 
     rates = sorted({r.fps for r in t5 if r.fps is not None})
     if len(rates) >= 2:
-        d, lost = paired(t5, _fps(rates[-1]), _fps(rates[0]))
+        ends = (_fps(rates[-1]), _fps(rates[0]))
+        d, lost = paired(t5, *ends)
         if d is None:
             v = "untested"
         elif d.half is not None and abs(d.low) <= FPS_TOLERANCE_DB \
@@ -188,12 +235,16 @@ def check_findings(runs: Sequence[Run]) -> list[Finding]:
             v = "fails"
         else:
             v = "inconclusive"
-        out.append(Finding("RGB frame rate barely matters (Tab. 5)", v, d, "PSNR",
-                           f"{rates[-1]:g} − {rates[0]:g} FPS, within ±{FPS_TOLERANCE_DB} dB",
-                           _lost(lost)))
+        f = Finding(_FPS_CLAIM, v, d, "PSNR",
+                    f"{rates[-1]:g} − {rates[0]:g} FPS, within ±{FPS_TOLERANCE_DB} dB",
+                    _lost(lost))
+        f.paper = paper_difference(t5, "table5", (setting_label(rates[-1]),
+                                                  setting_label(rates[0])), *ends, "psnr")
+        if d is not None and abs(d.mean) < FPS_TOLERANCE_DB:   # the interval inside ±tol
+            f.needed = pairs_to_resolve(d, FPS_TOLERANCE_DB - abs(d.mean))
+        out.append(f)
     else:
-        out.append(Finding("RGB frame rate barely matters (Tab. 5)", "untested", None, "PSNR",
-                           ""))
+        out.append(Finding(_FPS_CLAIM, "untested", None, "PSNR", ""))
 
     three = [r for r in t6 if r.views == 3 and r.loss == "full"]
     gains = [g for r in three if r.ok and (g := _gain(r)) is not None]
@@ -226,8 +277,10 @@ def _decay_findings(t4: Sequence[Run]) -> list[Finding]:
             v = ("fails" if "fails" in verdicts else "holds" if verdicts == {"holds"}
                  else "inconclusive")
             note = ""
-        out.append(Finding(f"{claim}, `{scene}`)", v, d_ssim, "SSIM", "`Full` − `w/o decay`",
-                           "; ".join(x for x in (note, _lost(lost)) if x)))
+        out.append(_beside_paper(
+            Finding(f"{claim}, `{scene}`)", v, d_ssim, "SSIM", "`Full` − `w/o decay`",
+                    "; ".join(x for x in (note, _lost(lost)) if x)),
+            runs, "table4", ("Our Full Model (Final)", "w/o decay"), full4, no_decay))
     return out
 
 
@@ -239,6 +292,10 @@ class RowDifference:
     all_scenes: MeanCI | None
     moving: MeanCI | None
     lost: int
+    #: the paper's ``Full − row`` over the columns of the scenes in ``all_scenes``
+    paper: float | None = None
+    #: pairs that would resolve ``paper`` at the spread of ``all_scenes``
+    needed: int | None = None
 
 
 def row_differences(runs: Sequence[Run], table: str = "table3",
@@ -247,8 +304,12 @@ def row_differences(runs: Sequence[Run], table: str = "table3",
     the evidence behind claim 1, one line per row, the closest rows first."""
     t = _in(table, runs)
     moving = {lab: d for lab, d, _ in _against_each(_moving(t), table, full)}
-    out = [RowDifference(lab, d, moving.get(lab), lost)
-           for lab, d, lost in _against_each(t, table, full)]
+    out = []
+    for lab, d, lost in _against_each(t, table, full):
+        paper = paper_difference(t, table, (full, lab), _row(table, full), _row(table, lab),
+                                 "psnr")
+        needed = pairs_to_resolve(d, paper) if d is not None and paper is not None else None
+        out.append(RowDifference(lab, d, moving.get(lab), lost, paper, needed))
     return sorted(out, key=lambda x: x.all_scenes.mean if x.all_scenes else float("inf"))
 
 
@@ -264,12 +325,19 @@ def row_differences_markdown(diffs: Sequence[RowDifference]) -> str:
 
     if not diffs:
         return ""
-    rows = [[d.row, *cell(d.all_scenes), *cell(d.moving), str(d.lost)] for d in diffs]
+    rows = [[d.row, *cell(d.all_scenes), *cell(d.moving), str(d.lost), fmt(d.paper, 2),
+             _inside(d.paper, d.all_scenes), _needed_text(d.needed, d.all_scenes)]
+            for d in diffs]
     header = ["row", "Full − row, all scenes (dB)", "n", "Full − row, scenes with motion (dB)",
-              "n", "runs not scored"]
+              "n", "runs not scored", "paper, same scenes (dB)", "paper inside ours",
+              "pairs to resolve the paper's"]
     return ("## Tab. 3: the full model against each row\n\n" + markdown_table(header, rows)
             + "\n\n- PSNR, paired over (scene, seed), mean ± 95 % interval; bold: the interval "
-              "excludes zero. Runs not scored (collapsed or failed) drop their pairs.\n")
+              "excludes zero. Runs not scored (collapsed or failed) drop their pairs.\n"
+              "- paper: its Full − row averaged over the columns our scenes stand for; pairs to "
+              "resolve it: (scene, seed) pairs that, at the spread of ours (all scenes), give a "
+              "95 % interval narrower than the paper's difference (\"met\": n has them); paper "
+              "inside ours **no**: our runs rule the paper's difference out at this scale.\n")
 
 
 @dataclass
@@ -343,6 +411,21 @@ def _gain(r: Run) -> float | None:
     return None if p is None or e is None else p - e
 
 
+def _inside(paper: float | None, d: MeanCI | None) -> str:
+    """Whether the paper's difference lies in our 95 % interval: "yes", "**no**" (our
+    runs rule it out at this scale) or "—"."""
+    if paper is None or d is None or d.half is None:
+        return "—"
+    return "yes" if d.low <= paper <= d.high else "**no**"
+
+
+def _needed_text(needed: int | None, d: MeanCI | None) -> str:
+    """Pairs needed, for a table: "—" where it cannot be said, "met" where ``d`` has them."""
+    if needed is None:
+        return "—"
+    return "met" if d is not None and d.n >= needed else str(needed)
+
+
 def _lost(n: int) -> str:
     return f"{n} run(s) not scored (collapsed/failed)" if n else ""
 
@@ -354,10 +437,18 @@ def findings_markdown(findings: Sequence[Finding]) -> str:
         diff = (f"{fmt(f.diff.mean, 3)} ± {fmt(f.diff.half, 3)}" if f.diff and f.diff.half
                 else fmt(f.diff.mean, 3) if f.diff else "—")
         rows.append([f.claim, f.verdict, f.metric, diff, str(f.diff.n if f.diff else 0),
-                     f.cells, f.note])
+                     fmt(f.paper, 3), _inside(f.paper, f.diff) if f.claim != _FPS_CLAIM else "—",
+                     _needed_text(f.needed, f.diff), f.cells, f.note])
     header = ["claim (supplementary)", "verdict", "metric", "paired difference ± 95 %", "n",
-              "cells", "note"]
+              "paper", "paper inside ours", "pairs to resolve the paper's", "cells", "note"]
     return ("## The paper's claims at this scale\n\n" + markdown_table(header, rows) + "\n\n"
             "- holds / fails: the 95 % interval of the mean paired difference (over scene × "
             "seed) lies on the claimed / the other side of zero; inconclusive: it contains "
-            "zero (the effect is within the spread over seeds); untested: no runs.\n")
+            "zero (the effect is within the spread over seeds); untested: no runs.\n"
+            "- paper: the paper's difference for the same cells (the columns our scenes stand "
+            "for); pairs to resolve it: how many (scene, seed) pairs, at the spread of ours, "
+            "give a 95 % interval narrower than the paper's difference (for \"barely matters\": "
+            "an interval inside the tolerance at our mean; \"met\": n has them). An "
+            "inconclusive verdict with far fewer pairs is too small a comparison to see the "
+            "paper's effect; paper inside ours **no**: our runs rule the paper's difference out "
+            "at this scale.\n")

@@ -12,6 +12,7 @@ paper's ``(PSNR, SSIM, LPIPS)`` for that cell.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 #: Metric keys (as in metrics.json) and their display names.
@@ -41,6 +42,21 @@ class PaperTable:
     def value(self, row: str, column: str) -> tuple[float, ...] | None:
         """The paper's metric tuple for a cell, or ``None`` if the paper has none."""
         return self.values.get((row, column))
+
+    def difference(self, a: str, b: str, metric: str, columns: Sequence[str]) -> float | None:
+        """The paper's ``a − b`` in ``metric``, averaged over ``columns`` (each column
+        once); ``None`` without columns or where the paper lacks a cell or the metric.
+
+        >>> round(PAPER_TABLES["table5"].difference("100", "0.5", "psnr", ["Sword"]), 3)
+        0.378
+        """
+        if metric not in self.metrics:
+            return None
+        k, cols = self.metrics.index(metric), sorted(set(columns))
+        cells = [(self.value(a, c), self.value(b, c)) for c in cols]
+        if not cells or any(va is None or vb is None for va, vb in cells):
+            return None
+        return sum(va[k] - vb[k] for va, vb in cells) / len(cells)
 
 
 def _grid(columns: tuple[str, ...], rows: dict[str, tuple[float, ...]], width: int):
