@@ -72,11 +72,12 @@ def test_sample_pixels_counts_and_event_ratio() -> None:
     assert torch.equal(torch.bincount(view, minlength=V), counts)
     assert torch.all((row >= 0) & (row < H) & (col >= 0) & (col < W))
     on_ev = event_map[view, row, col] != 0
-    # View 0: 40 rays on events + the uniform ones hitting the 18/600 event pixels.
+    # View 0: ⌊400·(1 − 0.9)⌋ = 39 rays on events (the authors' int(): 1 − 0.9 is
+    # 0.0999… in float64) + the uniform ones hitting the 18/600 event pixels.
     n0 = int(on_ev[view == 0].sum())
-    exp0 = 40 + 360 * 18 / 600
-    assert abs(n0 - exp0) < 5 * math.sqrt(360 * 0.03)
-    assert int(on_ev[view == 1].sum()) >= 30  # 30 forced to the single event pixel
+    exp0 = 39 + 361 * 18 / 600
+    assert abs(n0 - exp0) < 5 * math.sqrt(361 * 0.03)
+    assert int(on_ev[view == 1].sum()) >= 29  # 29 forced to the single event pixel
     assert int(on_ev[view == 2].sum()) == 0
     # Uniform rays cover the image: mean row/col near the centre.
     v2 = view == 2
@@ -92,9 +93,40 @@ def test_neg_ratio_proportions(neg_ratio: float) -> None:
     counts = torch.tensor([500, 500])
     view, row, col = sample_pixels(event_map, counts, neg_ratio, gen)
     hits = int(((row == 0) & (col == 0)).sum())
-    forced = 2 * (500 - round(500 * neg_ratio))
+    forced = 2 * math.floor(500 * (1.0 - neg_ratio))
     uniform = 1000 - forced
     assert abs(hits - forced - uniform / 1600) < 5 * math.sqrt(uniform / 1600) + 1
+
+
+def test_sample_pixels_draw_without_replacement_like_the_authors() -> None:
+    """Each view's uniform rays and its event rays are sets (no pixel twice) unless the
+    view asks for more than it has; every pixel is equally likely to be in a set."""
+    gen = torch.Generator().manual_seed(4)
+    V, H, W = 2, 6, 5                      # 30 pixels per view
+    event_map = torch.zeros(V, H, W, dtype=torch.bool)
+    event_map[0, :2] = True                # 10 event pixels
+    event_map[1, 0, :3] = True             # 3 event pixels: fewer than the 4 asked for
+    counts = torch.tensor([25, 25])
+    inclusion = torch.zeros(H * W)
+    trials = 500
+    for _ in range(trials):
+        view, row, col = sample_pixels(event_map, counts, 0.8, gen)
+        flat = row * W + col
+        for v in range(V):   # per view: 21 uniform rays first, then ⌊25·(1 − 0.8)⌋ = 4
+            uni, pos = flat[view == v][:21], flat[view == v][21:]   # (25·0.1999… in float64)
+            assert pos.numel() == 4 and bool(event_map[v].reshape(-1)[pos].all())
+            assert uni.unique().numel() == 21
+            if v == 0:
+                assert pos.unique().numel() == 4
+                inclusion[uni] += 1
+            else:                          # 4 > 3 event pixels: with replacement
+                assert set(pos.tolist()) <= {0, 1, 2}
+    # inclusion frequency of each pixel among 21 of 30, binomial spread
+    p = 21 / 30
+    assert (inclusion / trials - p).abs().max().item() < 5 * math.sqrt(p * (1 - p) / trials)
+    # a view asking for more uniform rays than it has pixels draws with replacement
+    view, row, col = sample_pixels(torch.zeros(1, 2, 2), torch.tensor([9]), 1.0, gen)
+    assert view.numel() == 9 and (row * 2 + col).unique().numel() <= 4
 
 
 def test_sample_pixels_bad_input() -> None:
@@ -116,17 +148,25 @@ def test_jitter_range_and_uniformity() -> None:
     assert abs(d.var(0).mean().item() - 1 / 12) < 0.005  # U(−½, ½) has variance 1/12
 
 
-def test_pick_reference_two_nearest() -> None:
+def test_pick_reference_two_nearest_drawn_per_view() -> None:
     gen = torch.Generator().manual_seed(5)
     times = torch.tensor([0.0, 200.0, 400.0, 600.0, 800.0, 1000.0])
-    picks = [pick_reference(times, 430.0, gen) for _ in range(2000)]
-    assert set(picks) == {2, 3}  # 400 and 600 are the two nearest to 430
-    assert abs(np.mean(np.array(picks) == 2) - 0.5) < 5 * math.sqrt(0.25 / 2000)
+    picks = pick_reference(times, 430.0, gen, views=4000)
+    assert picks.shape == (4000,) and picks.dtype == torch.int64
+    assert set(picks.tolist()) == {2, 3}  # 400 and 600 are the two nearest to 430
+    assert abs((picks == 2).double().mean().item() - 0.5) < 5 * math.sqrt(0.25 / 4000)
+    # views are drawn independently (the authors draw per view): of 2000 pairs of
+    # views, about half disagree
+    pairs = pick_reference(times, 430.0, gen, views=4000).reshape(2000, 2)
+    differ = (pairs[:, 0] != pairs[:, 1]).double().mean().item()
+    assert abs(differ - 0.5) < 5 * math.sqrt(0.25 / 2000)
     # t1 on a frame: that frame or its nearest neighbour (tie → lower index first).
-    assert set(pick_reference(times, 1000.0, gen) for _ in range(200)) == {4, 5}
-    assert pick_reference(torch.tensor([500.0]), 10.0, gen) == 0  # F = 1
+    assert set(pick_reference(times, 1000.0, gen, views=200).tolist()) == {4, 5}
+    assert pick_reference(torch.tensor([500.0]), 10.0, gen).tolist() == [0]  # F = 1
     with pytest.raises(InputError, match="frame_times"):
         pick_reference(torch.zeros(0), 1.0, gen)
+    with pytest.raises(InputError, match="views"):
+        pick_reference(times, 1.0, gen, views=0)
 
 
 def test_reference_events_sign_rule() -> None:

@@ -101,6 +101,39 @@ def test_one_parameter_set_for_coarse_and_fine(data_dir: Path, tmp_path: Path):
     assert in_optimiser == {id(p) for p in field.parameters()}
 
 
+def test_each_view_draws_its_own_reference_frame_and_its_rays_agree_with_it(data_dir: Path):
+    """The authors draw the reference frame per view: within a view every ray has the same
+    ``t_ref``, its frame's colour and ``V(t1) − V(t_ref)``; across steps views differ."""
+    cfg = tiny_config(data_dir, "trainer.max_steps=1")
+    ds = build.load_dataset(cfg)
+    m = build.build_module(cfg, build.scene_properties(cfg, ds), ds.splits["train"],
+                           Segment(0, 1000))
+    b = m.batcher
+    H, W = b.cameras.height, b.cameras.width
+    mixed = 0
+    for step in range(12):
+        batch = b.sample(64, step_generator(7, step))
+        view, row, col = batch["view"], batch["row"], batch["col"]
+        t1 = b.segment.units(batch["t1"][0, 0].double())
+        per_view = []
+        for v in view.unique().tolist():
+            t_ref = batch["t_ref"][view == v, 0]
+            assert bool((t_ref == t_ref[0]).all())
+            per_view.append(float(t_ref[0]))
+        mixed += len(set(per_view)) > 1
+        t_ref_u = b.segment.units(batch["t_ref"][:, 0].double())
+        ref = (b.frame_times[None, :] - t_ref_u[:, None]).abs().argmin(1)
+        # the frame is one of the two nearest t1
+        near2 = (b.frame_times - t1).abs().argsort(stable=True)[:2]
+        assert bool(torch.isin(ref, near2).all())
+        assert torch.equal(batch["ref_rgb"], b.frames[ref, view, row, col])
+        pix = (view * H + row) * W + col
+        want = b.events.window(pix, b.frame_times[ref].double(),
+                               torch.full_like(t_ref_u, float(t1)))
+        torch.testing.assert_close(batch["events_ref"], want.float())
+    assert mixed >= 3   # P(all views agree) is 2^(1-V) per step when two frames qualify
+
+
 def test_multisegment_run_trains_each_segment_and_crossfades(data_dir: Path, tmp_path: Path):
     cfg = tiny_config(data_dir, "trainer.max_steps=4", "+scene.segments=[[0,510],[490,1000]]")
     metrics = runner.run(cfg, tmp_path)

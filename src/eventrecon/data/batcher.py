@@ -6,8 +6,8 @@ Each call of :meth:`RayBatcher.sample` draws, with its own generator,
    sampling"), shared by all views;
 2. ``n_rays`` pixels split equally over the training views, per view a fraction
    ``neg_ratio`` uniform over the image and the rest on pixels with ``E(t0, t1) ≠ 0``;
-3. a reference frame among the two nearest to ``t1`` and
-   ``E_ref→1 = V(t1) − V(t_ref)``;
+3. per view, a reference frame among the two nearest to ``t1`` (drawn for each view
+   on its own, as the authors' code does) and ``E_ref→1 = V(t1) − V(t_ref)``;
 4. rays through the pixels jittered by ±0.5 px.
 
 All tensors live on the batcher's device; the generator makes the batch a pure
@@ -115,9 +115,9 @@ class RayBatcher:
         t0_full = torch.full((n,), t0u, dtype=torch.float64, device=self.device)
         t1_full = torch.full((n,), t1u, dtype=torch.float64, device=self.device)
         events = self.events.window(pix, t0_full, t1_full)
-        ref = sampling.pick_reference(self.frame_times, t1u, gen)
-        t_ref_u = float(self.frame_times[ref])
-        events_ref = self.events.window(pix, torch.full_like(t1_full, t_ref_u), t1_full)
+        ref = sampling.pick_reference(self.frame_times, t1u, gen, self.n_views)[view]  # [N]
+        t_ref_u = self.frame_times[ref].to(torch.float64)
+        events_ref = self.events.window(pix, t_ref_u, t1_full)
         uv = torch.stack([col, row], -1).double()
         uv = sampling.jitter(uv, gen)
         o, d = self.cameras.rays(view.cpu(), uv.cpu())
@@ -129,7 +129,7 @@ class RayBatcher:
             "view": view, "row": row, "col": col,
             "t0": torch.full((n, 1), float(t0), device=self.device),
             "t1": torch.full((n, 1), float(t1), device=self.device),
-            "t_ref": torch.full((n, 1), float(seg.normalise(t_ref_u)), device=self.device),
+            "t_ref": seg.normalise(t_ref_u)[:, None].to(self.device, torch.float32),
             "events": events.float(), "events_ref": events_ref.float(),
             "ref_rgb": self.frames[ref, view, row, col],
             "bg": self.background[view, row, col],

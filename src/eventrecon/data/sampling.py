@@ -6,10 +6,10 @@ device; results are moved to the device of the tensors passed in.
 
 1. :func:`sample_window` — one window ``(t0, t1)`` per iteration, normalised times;
 2. :func:`rays_per_view` — ``N_rand`` rays split equally over the views (supp. Sec. 9);
-3. :func:`sample_pixels` — per view ``neg_ratio`` of the rays uniform over the image,
-   the rest on pixels with ``E(t0, t1) ≠ 0``;
+3. :func:`sample_pixels` — per view ``⌊n·(1 − neg_ratio)⌋`` rays on pixels with
+   ``E(t0, t1) ≠ 0``, the rest uniform over the image, each set without replacement;
 4. :func:`jitter` — ±0.5 px inside the pixel;
-5. :func:`pick_reference` — one of the two RGB frames nearest ``t1``.
+5. :func:`pick_reference` — per view, one of the two RGB frames nearest ``t1``.
 
 The reference signal ``E_ref→1 = E(t_ref, t1)``, negated when ``t_ref > t1``, is
 ``V(t1) − V(t_ref)`` for *both* orderings (for ``t_ref > t1``:
@@ -64,13 +64,47 @@ def rays_per_view(n_rays: int, n_views: int, gen: torch.Generator) -> Tensor:
     return counts
 
 
+def _distinct(pool: Tensor, group: Tensor, distinct: Tensor, gen: torch.Generator) -> Tensor:
+    """Draw ``j`` uniform over ``range(pool[j])``; no index twice within a group flagged
+    ``distinct``.
+
+    Duplicates (every occurrence of a ``(group, index)`` after its first) are drawn again
+    until none are left. The procedure treats every index alike, so each set of distinct
+    indices is equally likely: the same law as drawing without replacement.
+
+    Args:
+        pool: ``[K]`` int64 sizes (≥ 1); a distinct group must not ask for more than its
+            pool holds.
+        group: ``[K]`` int64 group ids.
+        distinct: ``[K]`` bool, constant within a group.
+        gen: random generator (the draws are on its device).
+
+    Returns:
+        ``[K]`` int64 indices on ``gen``'s device.
+    """
+    pool, group, distinct = (x.to(gen.device) for x in (pool, group, distinct))
+    idx = (_rand(pool.numel(), gen) * pool).long().clamp_max(pool - 1)
+    if idx.numel() < 2:
+        return idx
+    span = int(pool.max()) + 1
+    while True:
+        order = torch.sort(group * span + idx, stable=True)
+        again = order.indices[1:][order.values[1:] == order.values[:-1]]
+        again = again[distinct[again]]
+        if again.numel() == 0:
+            return idx
+        idx[again] = (_rand(again.numel(), gen) * pool[again]).long().clamp_max(pool[again] - 1)
+
+
 def sample_pixels(event_map: Tensor, counts: Tensor, neg_ratio: float,
                   gen: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
-    """Pixels of one batch: per view, uniform rays and rays on event pixels.
+    """Pixels of one batch: per view, rays on event pixels and uniform rays.
 
-    View ``v`` gets ``counts[v]`` rays: ``round(neg_ratio·counts[v])`` uniform over its
-    ``H·W`` pixels, the others uniform over its pixels with ``event_map ≠ 0`` (uniform
-    over all pixels if it has none). Draws are with replacement, vectorised over views.
+    As the authors' ``random_sample`` draws them: view ``v`` gets ``counts[v]`` rays,
+    ``⌊counts[v]·(1 − neg_ratio)⌋`` of them on its pixels with ``event_map ≠ 0`` (without
+    replacement unless it has fewer such pixels; none if it has none) and the rest uniform
+    over its ``H·W`` pixels without replacement (with, where a view asks for more rays than
+    it has pixels). The two sets may share pixels. Vectorised over views.
 
     Args:
         event_map: ``[V, H, W]`` E(t0, t1) values or a bool "has events" map.
@@ -93,25 +127,27 @@ def sample_pixels(event_map: Tensor, counts: Tensor, neg_ratio: float,
                          counts.tolist())
     device = event_map.device
     hw = height * width
-    n_uni = torch.round(counts.double() * neg_ratio).to(torch.int64)
-    n_pos = counts - n_uni
+    n_pos = torch.floor(counts.double() * (1.0 - neg_ratio)).to(torch.int64)  # int(n·(1−r))
     has_ev = (event_map != 0).reshape(n_views, hw).to(gen.device)
     n_ev = has_ev.sum(1).cpu()  # [V] event pixels per view
-    n_pos_ok = torch.where(n_ev > 0, n_pos, 0)  # views without events draw uniformly
-    n_uni = counts - n_pos_ok
-    # Uniform rays: view-local flat index floor(u·HW).
-    v_uni = torch.repeat_interleave(torch.arange(n_views), n_uni).to(gen.device)
-    flat_uni = (_rand(int(n_uni.sum()), gen) * hw).long().clamp_max(hw - 1)
-    # Event rays: the k-th event pixel of view v, k = floor(u·n_ev[v]).
+    n_pos = torch.where(n_ev > 0, n_pos, 0)  # views without events draw uniformly
+    n_uni = counts - n_pos
+    views = torch.arange(n_views)
+    v_uni = torch.repeat_interleave(views, n_uni)
+    v_pos = torch.repeat_interleave(views, n_pos)
+    # one draw: uniform rays index the view's pixels (group v), event rays its event
+    # pixels (group V + v)
+    pool = torch.cat([torch.full_like(v_uni, hw), n_ev[v_pos]])
+    group = torch.cat([v_uni, n_views + v_pos])
+    distinct = torch.cat([(n_uni <= hw)[v_uni], (n_pos <= n_ev)[v_pos]])
+    k = _distinct(pool, group, distinct, gen)
+    flat_uni = k[: v_uni.numel()]
     ev_flat = torch.nonzero(has_ev.reshape(-1)).squeeze(1)  # sorted by view, then pixel
     ev_start = (torch.cumsum(n_ev, 0) - n_ev).to(gen.device)
-    v_pos = torch.repeat_interleave(torch.arange(n_views), n_pos_ok).to(gen.device)
-    n_ev_dev = n_ev.to(gen.device)
-    k = (_rand(int(n_pos_ok.sum()), gen) * n_ev_dev[v_pos]).long()
-    k = torch.minimum(k, n_ev_dev[v_pos] - 1)
-    flat_pos = ev_flat[ev_start[v_pos] + k] - v_pos * hw
+    v_pos_g = v_pos.to(gen.device)
+    flat_pos = ev_flat[ev_start[v_pos_g] + k[v_uni.numel():]] - v_pos_g * hw
     # Group by view, uniform rays first within each view.
-    view = torch.cat([v_uni, v_pos])
+    view = torch.cat([v_uni, v_pos]).to(gen.device)
     flat = torch.cat([flat_uni, flat_pos])
     order = torch.sort(view, stable=True).indices
     view, flat = view[order].to(device), flat[order].to(device)
@@ -133,24 +169,32 @@ def jitter(uv: Tensor, gen: torch.Generator) -> Tensor:
     return uv + noise.to(uv.device)
 
 
-def pick_reference(frame_times: Tensor, t1: float, gen: torch.Generator) -> int:
-    """Index of a reference frame: one of the two frames nearest ``t1``, at random.
+def pick_reference(frame_times: Tensor, t1: float, gen: torch.Generator, views: int = 1
+                   ) -> Tensor:
+    """Per view, the index of a reference frame: one of the two frames nearest ``t1``, at
+    random, drawn independently for each view (the authors' ``random_sample`` draws it
+    per view, so one step's views mix both candidates).
 
     Args:
         frame_times: ``[F]`` frame times (same units as ``t1``), ``F ≥ 1``.
         t1: the window end.
+        gen: random generator (``views`` uniform draws).
+        views: how many views to draw for.
 
     Returns:
-        the chosen frame index (the only frame when ``F = 1``). Ties in distance keep
-        the lower index first.
+        ``[views]`` int64 frame indices on ``frame_times``' device (the only frame when
+        ``F = 1``). Ties in distance keep the lower index first.
 
-    >>> pick_reference(torch.tensor([0.0, 10.0, 20.0]), 12.0, torch.Generator()) in (1, 2)
+    >>> refs = pick_reference(torch.tensor([0.0, 10.0, 20.0]), 12.0, torch.Generator(), 3)
+    >>> set(refs.tolist()) <= {1, 2}
     True
     """
     n = int(frame_times.shape[0])
     if n == 0:
         raise InputError("sampling", "frame_times", "at least one RGB frame", 0)
+    if views < 1:
+        raise InputError("sampling", "views", "at least one view", views)
     dist = (frame_times.detach().cpu().to(torch.float64) - float(t1)).abs()
     nearest = torch.sort(dist, stable=True).indices[: min(2, n)]
-    pick = int(_rand(1, gen).item() * nearest.shape[0])
-    return int(nearest[min(pick, nearest.shape[0] - 1)])
+    pick = (_rand(views, gen).cpu() * nearest.shape[0]).long().clamp_max(nearest.shape[0] - 1)
+    return nearest[pick].to(frame_times.device)
