@@ -13,7 +13,7 @@ from eventrecon.fields.base import Field
 from eventrecon.render.cameras import ring_rig
 from eventrecon.render.clipping import Cylinder
 from eventrecon.render.queries import padded_rows, query_field
-from eventrecon.render.samplers import interval_edges, sample_pdf, stratified
+from eventrecon.render.samplers import pdf_bins, sample_pdf, step_sizes, stratified
 from eventrecon.render.volume import Renderer, composite, render_weights
 
 
@@ -140,16 +140,30 @@ def test_cylinder_rejects_bad_parameters() -> None:
 
 # ----------------------------------------------------------------------------- samplers
 
-def test_stratified_one_sample_per_bin_and_reproducible() -> None:
+def test_stratified_one_sample_per_authors_cell_and_reproducible() -> None:
+    """The authors' placement: points z_i = near + i·Δ, Δ = (far − near)/(n − 1), each
+    jittered uniformly in [z_i − Δ/2, z_i + Δ/2] ∩ [near, far] (half-wide end cells)."""
     near, far = torch.tensor([0.5, 1.0, 2.0]), torch.tensor([1.5, 4.0, 2.0 + 1e-6])
-    s = stratified(near, far, 16, perturb=True, gen=torch.Generator().manual_seed(3))
-    bin_index = ((s - near[:, None]) / (far - near)[:, None] * 16).floor()
-    assert torch.equal(bin_index[:2], torch.arange(16.0).expand(2, 16))
-    assert bool((s[2] >= near[2]).all() and (s[2] <= far[2]).all())
+    gen = torch.Generator().manual_seed(3)
+    s = stratified(near, far, 16, perturb=True, gen=gen)
+    step = ((far - near) / 15)[:, None]
+    z = near[:, None] + step * torch.arange(16.0)
+    lo, hi = (z - step / 2).maximum(near[:, None]), (z + step / 2).minimum(far[:, None])
+    tol = 1e-6
+    assert bool(((s >= lo - tol) & (s <= hi + tol)).all())
     s2 = stratified(near, far, 16, perturb=True, gen=torch.Generator().manual_seed(3))
     assert torch.equal(s, s2)
-    mid = stratified(near[:1], far[:1], 4, perturb=False)
-    assert torch.allclose(mid, torch.tensor([[0.625, 0.875, 1.125, 1.375]]))
+    assert torch.allclose(stratified(near[:1], far[:1], 5, perturb=False),
+                          torch.tensor([[0.5, 0.75, 1.0, 1.25, 1.5]]))
+    # the jitter is uniform in each cell: an end cell's samples average a quarter step
+    # inside it (the authors' comment), an inner cell's its point
+    many = stratified(torch.zeros(20000), torch.ones(20000), 5, True, gen)
+    mean = many.mean(0)
+    spread = 0.25 / math.sqrt(12 * 20000)          # cell width 1/4, uniform
+    assert abs(mean[0].item() - 1 / 16) < 5 * spread and abs(mean[4].item() - 15 / 16) < 5 * spread
+    assert abs(mean[2].item() - 0.5) < 10 * spread
+    with pytest.raises(InputError, match="n"):
+        stratified(near, far, 1, perturb=False)
 
 
 def test_importance_samples_follow_the_weights() -> None:
@@ -158,7 +172,7 @@ def test_importance_samples_follow_the_weights() -> None:
     bins = torch.cumsum(torch.rand(2, m + 1, generator=gen) + 0.05, dim=-1)
     weights = torch.rand(2, m, generator=gen) ** 3
     weights[:, 5] = 0.0
-    p = (weights + 1e-5) / (weights + 1e-5).sum(-1, keepdim=True)
+    p = (weights + 1e-6) / (weights + 1e-6).sum(-1, keepdim=True)
 
     # Deterministic quantiles: bin j receives n p_j samples up to +-1.
     n = 1000
@@ -192,12 +206,18 @@ def test_importance_sampling_of_all_zero_weights_is_uniform() -> None:
     assert torch.allclose(s, (torch.arange(8.0) + 0.5) / 8, atol=1e-6)
 
 
-def test_interval_edges_tile_the_interval() -> None:
+def test_step_sizes_are_the_authors_forward_differences_and_the_fine_histogram_too() -> None:
     s = torch.sort(torch.rand(4, 10), dim=-1).values * 2 + 1
-    near, far = torch.ones(4), torch.full((4,), 3.0)
-    e = interval_edges(s, near, far)
-    assert torch.allclose(e.diff(dim=-1).sum(-1), far - near)
-    assert bool((e[:, 1:-1] >= s[:, :-1]).all() and (e[:, 1:-1] <= s[:, 1:]).all())
+    far = torch.full((4,), 3.0)
+    delta = step_sizes(s, far)
+    assert torch.allclose(delta[:, :-1], s[:, 1:] - s[:, :-1])
+    assert torch.allclose(delta[:, -1], far - s[:, -1])
+    assert torch.allclose(delta.sum(-1), far - s[:, 0])
+    w = torch.rand(4, 10)
+    bins, inner = pdf_bins(s, w)
+    assert torch.allclose(bins, 0.5 * (s[:, 1:] + s[:, :-1])) and torch.equal(inner, w[:, 1:-1])
+    with pytest.raises(InputError, match="n_coarse"):
+        pdf_bins(s[:, :2], w[:, :2])
 
 
 # ----------------------------------------------------------------------------- compositing
@@ -209,14 +229,19 @@ def test_constant_slab_transmittance_is_exp_minus_sigma_d() -> None:
     assert torch.allclose(t_last, torch.exp(-2.0 * delta.sum(-1)), atol=1e-5, rtol=0)
     # Through the renderer: the clipped interval of the axis ray is [1.5, 2.5] (d = 1).
     o, d = _ray([-2, -0.25, 0], [1, 0, 0])
+    # The authors' quadrature integrates from the first sample to far: τ = 2 (2.5 − s_0).
     field = ConstantField(2.0, (0.2, 0.4, 0.6))
     levels = Renderer(32, 16)(field, o.float(), d.float(), torch.zeros(1, 1),
                               torch.ones(1, 3), perturb=True,
                               gen=torch.Generator().manual_seed(0))
     for level in levels:
-        assert level["opacity"].item() == pytest.approx(1 - math.exp(-2.0), abs=1e-5)
-        expected = (1 - math.exp(-2.0)) * torch.tensor([0.2, 0.4, 0.6]) + math.exp(-2.0)
+        trans = math.exp(-2.0 * (2.5 - level["s"][0, 0].item()))
+        assert level["opacity"].item() == pytest.approx(1 - trans, abs=1e-5)
+        expected = (1 - trans) * torch.tensor([0.2, 0.4, 0.6]) + trans
         assert torch.allclose(level["rgb"][0], expected, atol=1e-5)
+    # without jitter the first sample is near itself: exactly exp(−2)
+    level = Renderer(32, 16)(field, o.float(), d.float(), torch.zeros(1, 1), torch.ones(1, 3))[1]
+    assert level["opacity"].item() == pytest.approx(1 - math.exp(-2.0), abs=1e-5)
 
 
 def test_partial_slab_within_one_cell() -> None:
@@ -224,7 +249,7 @@ def test_partial_slab_within_one_cell() -> None:
     o, d = _ray([-2, -0.25, 0], [1, 0, 0])
     levels = Renderer(64, 0)(WallField(0.0, 3.0, (1, 1, 1)), o.float(), d.float(),
                              torch.zeros(1, 1), torch.zeros(1, 3))
-    cell = 1.0 / 64
+    cell = 1.0 / 63
     assert abs(levels[0]["opacity"].item() - (1 - math.exp(-1.5))) <= 3 * math.exp(-1.5) * cell
 
 
@@ -263,7 +288,7 @@ def test_one_parameter_set_for_both_levels_and_reuse_is_exact() -> None:
     near, far, _ = renderer.cylinder.ray_interval(o, d)
     pts = (o[:, None] + s[..., None] * d[:, None]).reshape(-1, 3)
     sigma, rgb = field(pts, torch.full((pts.shape[0], 1), 0.3))
-    ref = composite(sigma[None], rgb[None], s, interval_edges(s, near, far), torch.zeros(1, 3))
+    ref = composite(sigma[None], rgb[None], s, far, torch.zeros(1, 3))
     assert torch.allclose(ref["rgb"], fine["rgb"], atol=1e-6)
     assert torch.allclose(ref["depth"], fine["depth"], atol=1e-6)
 
@@ -290,9 +315,8 @@ def test_extreme_density_and_tiny_steps_are_finite() -> None:
     delta = torch.tensor([[1e-8, 1e-8, 1e-8, 1e-8], [1.0, 1.0, 1.0, 1.0], [1.0, 0.5, 1.0, 1.0],
                           [1e-8, 0.0, 1e-8, 2.0]])
     rgb = torch.rand(4, 4, 3, requires_grad=True)
-    edges = torch.cat([torch.zeros(4, 1), delta.cumsum(-1)], -1)
-    s = 0.5 * (edges[:, 1:] + edges[:, :-1])
-    out = composite(sigma, rgb, s, edges, torch.ones(4, 3))
+    s = torch.cat([torch.zeros(4, 1), delta.cumsum(-1)[:, :-1]], -1)   # steps = delta
+    out = composite(sigma, rgb, s, delta.sum(-1), torch.ones(4, 3))
     (out["rgb"].sum() + out["depth"].sum() + out["opacity"].sum()).backward()
     for v in (out["rgb"], out["opacity"], out["depth"], sigma.grad, rgb.grad):
         assert bool(torch.isfinite(v).all())

@@ -1,10 +1,17 @@
-"""Sample placement along rays: stratified, importance (inverse CDF), interval edges.
+"""Sample placement along rays: stratified, importance (inverse CDF), step sizes.
 
 Every sampler works on a ray parameter interval ``[near, far]`` per ray and returns
-distances ``s [N, K]`` sorted along each ray. The quadrature used by the renderer
-assigns each sample the cell between the midpoints to its neighbours
-(:func:`interval_edges`), so the cells tile ``[near, far]`` exactly; the same edges are
-the histogram bins of the importance sampler.
+distances ``s [N, K]`` sorted along each ray. The placement and the quadrature are the
+authors' (``ddp_train_nerf.py``, ``ddp_sampling.py``, ``ddp_model.py``):
+
+- coarse: ``K`` evenly spaced points from ``near`` to ``far`` (both included), each
+  jittered uniformly within the cell between the midpoints to its neighbours, so the
+  two end cells are half as wide (:func:`stratified`);
+- step sizes: the forward difference to the next sample, the last sample's reaching
+  ``far`` (:func:`step_sizes`);
+- fine: drawn from the coarse weights ``w_1 … w_{K−2}`` as a histogram over the
+  midpoints of the coarse samples (:func:`pdf_bins`, :func:`sample_pdf`); the end
+  samples' weights are left out, as in the authors' code.
 
 Randomness only through an optional ``torch.Generator`` (on the rays' device).
 """
@@ -16,7 +23,7 @@ from torch import Tensor
 
 from eventrecon.errors import InputError
 
-__all__ = ["stratified", "sample_pdf", "interval_edges"]
+__all__ = ["stratified", "sample_pdf", "step_sizes", "pdf_bins"]
 
 
 def uniform(shape: tuple[int, ...], gen: torch.Generator | None, like: Tensor) -> Tensor:
@@ -36,15 +43,19 @@ def stratified(
     near: Tensor, far: Tensor, n: int, perturb: bool, gen: torch.Generator | None = None,
     copies: int = 1,
 ) -> Tensor:
-    """One sample in each of ``n`` equal bins of ``[near, far]``.
+    """``n`` evenly spaced points from ``near`` to ``far``, each jittered within its cell.
 
-    .. math:: s_i = \\text{near} + (\\text{far} - \\text{near})\\,\\frac{i + u_i}{n},
-              \\quad u_i \\sim U[0, 1)\\ \\text{if perturb else}\\ u_i = 1/2
+    .. math:: z_i = \\text{near} + i\\,\\frac{\\text{far} - \\text{near}}{n - 1},\\quad
+              s_i = l_i + u_i\\,(h_i - l_i),\\quad u_i \\sim U[0, 1)
+
+    with ``l_i, h_i`` the midpoints to the neighbours (``l_0 = z_0``, ``h_{n−1} = z_{n−1}``:
+    the end cells are half wide, as the authors' ``perturb_samples`` makes them), or
+    ``s_i = z_i`` without ``perturb`` (evaluation).
 
     Args:
         near, far: ``[N]`` interval ends (``far ≥ near``).
-        n: samples per ray.
-        perturb: jitter within each bin (training) or take bin centres (evaluation).
+        n: samples per ray (≥ 2).
+        perturb: jitter within each cell (training) or take the points (evaluation).
         gen: optional generator for the jitter.
         copies: the ``N`` rays are ``copies`` stacked blocks of the same ``N / copies``
             rays (one ray rendered at several times); every block gets the same jitter
@@ -52,43 +63,67 @@ def stratified(
             coarse depths once per ray for its ``t0``, ``t1`` and ``t_ref`` renders).
 
     Returns:
-        ``[N, n]`` sorted distances.
+        ``[N, n]`` sorted distances in ``[near, far]``.
 
-    >>> stratified(torch.tensor([0.0]), torch.tensor([1.0]), 4, perturb=False)
-    tensor([[0.1250, 0.3750, 0.6250, 0.8750]])
+    >>> stratified(torch.tensor([0.0]), torch.tensor([1.5]), 4, perturb=False)
+    tensor([[0.0000, 0.5000, 1.0000, 1.5000]])
     >>> gen = torch.Generator().manual_seed(0)
     >>> s = stratified(torch.zeros(4), torch.ones(4), 3, True, gen, copies=2)
     >>> bool((s[:2] == s[2:]).all())
     True
     """
+    if n < 2:
+        raise InputError("sampler", "n", "at least 2 samples per ray (the authors' linspace)", n)
     if copies < 1 or near.shape[0] % copies:
         raise InputError("sampler", "copies", f"a divisor of the ray count {near.shape[0]}",
                          copies)
-    shape = (near.shape[0] // copies, n)
-    if perturb:
-        u = uniform(shape, gen, near).repeat(copies, 1)
-    else:
-        u = torch.full((near.shape[0], n), 0.5, device=near.device, dtype=near.dtype)
     i = torch.arange(n, device=near.device, dtype=near.dtype)
-    return near[:, None] + (far - near)[:, None] * ((i + u) / n)
+    z = near[:, None] + (far - near)[:, None] * (i / (n - 1))
+    if not perturb:
+        return z
+    mid = 0.5 * (z[:, 1:] + z[:, :-1])
+    lower = torch.cat([z[:, :1], mid], dim=-1)
+    upper = torch.cat([mid, z[:, -1:]], dim=-1)
+    u = uniform((near.shape[0] // copies, n), gen, near).repeat(copies, 1)
+    return lower + (upper - lower) * u
 
 
-def interval_edges(s: Tensor, near: Tensor, far: Tensor) -> Tensor:
-    """Cell edges of sorted samples: ``[near, (s_0+s_1)/2, …, (s_{K-2}+s_{K-1})/2, far]``.
+def step_sizes(s: Tensor, far: Tensor) -> Tensor:
+    """The authors' quadrature steps: ``δ_i = s_{i+1} − s_i``, ``δ_{K−1} = far − s_{K−1}``.
 
     Args:
         s: ``[N, K]`` sorted distances in ``[near, far]``.
-        near, far: ``[N]``.
+        far: ``[N]``.
 
     Returns:
-        ``[N, K+1]`` edges; ``edges.diff(dim=-1)`` are the step sizes ``δ`` (sum
-        ``far − near``).
+        ``[N, K]`` steps (≥ 0), summing to ``far − s_0``.
 
-    >>> interval_edges(torch.tensor([[0.25, 0.75]]), torch.tensor([0.0]), torch.tensor([1.0]))
-    tensor([[0.0000, 0.5000, 1.0000]])
+    >>> step_sizes(torch.tensor([[0.25, 0.75]]), torch.tensor([1.0]))
+    tensor([[0.5000, 0.2500]])
     """
-    mid = 0.5 * (s[:, 1:] + s[:, :-1])
-    return torch.cat([near[:, None].to(s.dtype), mid, far[:, None].to(s.dtype)], dim=-1)
+    return torch.cat([s[:, 1:] - s[:, :-1], far[:, None].to(s.dtype) - s[:, -1:]], dim=-1)
+
+
+def pdf_bins(s: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
+    """The fine level's histogram from the coarse level: the ``K − 1`` midpoints of the
+    coarse samples as bin edges, the inner weights ``w_1 … w_{K−2}`` as bin weights (each
+    inner sample's weight spread over the cell around it; the authors' choice).
+
+    Args:
+        s: ``[N, K]`` sorted coarse distances (``K ≥ 3``).
+        weights: ``[N, K]`` coarse compositing weights.
+
+    Returns:
+        ``(bins [N, K−1], weights [N, K−2])`` for :func:`sample_pdf`.
+
+    >>> b, w = pdf_bins(torch.tensor([[0.0, 1.0, 2.0, 3.0]]), torch.tensor([[9.0, 1.0, 2.0, 9.0]]))
+    >>> b.tolist(), w.tolist()
+    ([[0.5, 1.5, 2.5]], [[1.0, 2.0]])
+    """
+    if s.shape[-1] < 3:
+        raise InputError("sampler", "n_coarse", "at least 3 coarse samples for a fine level",
+                         s.shape[-1])
+    return 0.5 * (s[:, 1:] + s[:, :-1]), weights[:, 1:-1]
 
 
 def sample_pdf(
@@ -97,7 +132,7 @@ def sample_pdf(
     n: int,
     deterministic: bool,
     gen: torch.Generator | None = None,
-    eps: float = 1e-5,
+    eps: float = 1e-6,
 ) -> Tensor:
     """Draw ``n`` samples per ray from the piecewise-constant pdf of ``weights``.
 
@@ -114,7 +149,7 @@ def sample_pdf(
         n: samples per ray.
         deterministic: quantiles instead of random draws.
         gen: optional generator (for ``deterministic=False``).
-        eps: added to every weight before normalising.
+        eps: added to every weight before normalising (the authors' ``TINY_NUMBER``).
 
     Returns:
         ``[N, n]`` sorted samples within ``[bins_0, bins_M]``.

@@ -1,9 +1,8 @@
 """Volume rendering: alpha compositing and the two-level (coarse + fine) renderer.
 
-Quadrature (per ray, samples ``s_i`` sorted in the clipping interval ``[near, far]``,
-each owning the cell between the midpoints to its neighbours, see
-:func:`eventrecon.render.samplers.interval_edges`, so the steps ``δ_i`` sum to
-``far − near``):
+Quadrature (per ray, samples ``s_i`` sorted in the clipping interval ``[near, far]``;
+the authors' steps ``δ_i = s_{i+1} − s_i`` and ``δ_{K−1} = far − s_{K−1}``, see
+:func:`eventrecon.render.samplers.step_sizes`):
 
 .. math::
     \\tau_i = \\sigma_i \\delta_i,\\quad
@@ -21,7 +20,9 @@ exponential of a cumulative sum (never a product of ``1 − α``, which loses al
 for tiny steps), ``α`` uses ``expm1``, and ``τ`` is clamped to ``[0, 10^4]`` (beyond
 that ``e^{-τ}`` is 0 in float32 anyway) so densities up to 10⁶ and steps down to 10⁻⁸ give
 finite colours in [0, 1] and finite gradients. Compositing runs in float32 even under
-autocast.
+autocast. The authors' product ``∏(1 − α_j + 10⁻⁶)`` carries a guard that lets ``T``
+exceed 1 (an empty ray of 64 samples has opacity −6·10⁻⁵); the exponential of the sum needs
+none, so it is left out: the one place where this quadrature differs from theirs.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from eventrecon.fields.base import Field
 from eventrecon.render.clipping import NO_CLIPPING, Cylinder
 from eventrecon.render.occupancy import OccupancyGrid
 from eventrecon.render.queries import query_field
-from eventrecon.render.samplers import interval_edges, sample_pdf, stratified
+from eventrecon.render.samplers import pdf_bins, sample_pdf, step_sizes, stratified
 
 if TYPE_CHECKING:
     from eventrecon.render.cameras import Cameras
@@ -73,15 +74,15 @@ def render_weights(sigma: Tensor, delta: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def composite(
-    sigma: Tensor, rgb: Tensor, s: Tensor, edges: Tensor, bg: Tensor
+    sigma: Tensor, rgb: Tensor, s: Tensor, far: Tensor, bg: Tensor
 ) -> dict[str, Tensor]:
     """Composite samples over a background (maths in the module docstring).
 
     Args:
         sigma: ``[N, K]`` densities.
         rgb: ``[N, K, 3]`` linear colours in [0, 1].
-        s: ``[N, K]`` sample distances.
-        edges: ``[N, K+1]`` cell edges (``edges[:, 0] = near``, ``edges[:, -1] = far``).
+        s: ``[N, K]`` sorted sample distances.
+        far: ``[N]`` the clipping interval's far end (the last step reaches it).
         bg: ``[N, 3]`` background colour.
 
     Returns:
@@ -89,13 +90,13 @@ def composite(
         ``weights [N, K]``, ``s [N, K]`` (the last two for importance sampling/debugging).
 
     >>> out = composite(torch.tensor([[0.0]]), torch.ones(1, 1, 3), torch.tensor([[0.5]]),
-    ...                 torch.tensor([[0.0, 1.0]]), torch.full((1, 3), 0.25))
+    ...                 torch.tensor([1.0]), torch.full((1, 3), 0.25))
     >>> out["rgb"], out["opacity"], out["depth"]
     (tensor([[0.2500, 0.2500, 0.2500]]), tensor([0.]), tensor([1.]))
     """
-    weights, t_last = render_weights(sigma, edges.diff(dim=-1))
+    weights, t_last = render_weights(sigma, step_sizes(s, far))
     colour = (weights[..., None] * rgb.float()).sum(dim=-2) + t_last[:, None] * bg.float()
-    depth = (weights * s.float()).sum(dim=-1) + t_last * edges[:, -1].float()
+    depth = (weights * s.float()).sum(dim=-1) + t_last * far.float()
     return {"rgb": colour.clamp(0.0, 1.0), "opacity": 1.0 - t_last, "depth": depth,
             "weights": weights, "s": s}
 
@@ -239,13 +240,13 @@ class Renderer(nn.Module):
         return self.occupancy.occupied(pts, t[:, None, :].expand(n, k, 1))
 
     def _march(self, field: Field, o: Tensor, d: Tensor, t: Tensor, s: Tensor,
-               edges: Tensor) -> tuple[Tensor, Tensor]:
+               far: Tensor) -> tuple[Tensor, Tensor]:
         """The coarse samples front to back in ``march_chunks`` groups: only occupied
         samples of rays whose transmittance is still above ``stop_transmittance`` reach the
         field (``[n, K]`` σ and ``[n, K, 3]`` rgb, zero where skipped)."""
         n, k = s.shape
         keep = self._occupied(o, d, t, s)
-        delta = edges.diff(dim=-1).float()
+        delta = step_sizes(s, far).float()
         tau = torch.zeros(n, device=s.device)
         sig_parts, rgb_parts, bounds = [], [], torch.linspace(0, k, self.march_chunks + 1)
         for a, b in zip(bounds[:-1].round().long().tolist(), bounds[1:].round().long().tolist()):
@@ -263,29 +264,28 @@ class Renderer(nn.Module):
                     copies: int = 1) -> list[dict[str, Tensor]]:
         """Both levels for rays that all hit the clipping volume."""
         s_c = stratified(near, far, self.n_coarse, perturb, gen, copies)
-        edges_c = interval_edges(s_c, near, far)
         skipping = self.skipping
         if skipping:
-            sigma_c, rgb_c = self._march(field, o, d, t, s_c, edges_c)
+            sigma_c, rgb_c = self._march(field, o, d, t, s_c, far)
         else:
             sigma_c, rgb_c = self._query(field, o, d, t, s_c)
-        levels = [composite(sigma_c, rgb_c, s_c, edges_c, bg)]
+        levels = [composite(sigma_c, rgb_c, s_c, far, bg)]
         if self.n_fine == 0:
             return levels
-        s_f = sample_pdf(edges_c, levels[0]["weights"], self.n_fine, not perturb, gen)
+        s_f = sample_pdf(*pdf_bins(s_c, levels[0]["weights"]), self.n_fine, not perturb, gen)
         keep_f = None
         if skipping:  # occupied, and in front of the point where the coarse ray stopped
             trans = 1.0 - levels[0]["weights"].detach().cumsum(-1)
             stopped = trans < self.stop_transmittance
-            first = torch.where(stopped.any(-1), stopped.float().argmax(-1),
-                                torch.full_like(near, s_c.shape[1], dtype=torch.long))
-            stop_s = edges_c.gather(1, (first + 1).clamp(max=s_c.shape[1])[:, None])
-            keep_f = self._occupied(o, d, t, s_f) & (s_f <= stop_s)
+            ends = torch.cat([s_c[:, 1:], far[:, None].to(s_c.dtype)], -1)   # each step's end
+            stop_s = torch.where(stopped.any(-1),
+                                 ends.gather(1, stopped.float().argmax(-1)[:, None])[:, 0], far)
+            keep_f = self._occupied(o, d, t, s_f) & (s_f <= stop_s[:, None])
         sigma_f, rgb_f = self._query(field, o, d, t, s_f, keep_f)
         s_all, order = torch.sort(torch.cat([s_c, s_f], dim=-1), dim=-1)
         sigma = torch.cat([sigma_c, sigma_f], dim=-1).gather(1, order)
         rgb = torch.cat([rgb_c, rgb_f], dim=-2).gather(1, order[..., None].expand(-1, -1, 3))
-        levels.append(composite(sigma, rgb, s_all, interval_edges(s_all, near, far), bg))
+        levels.append(composite(sigma, rgb, s_all, far, bg))
         return levels
 
     def forward(self, field: Field, o: Tensor, d: Tensor, t: Tensor, bg: Tensor,
