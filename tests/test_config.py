@@ -97,6 +97,10 @@ def test_paper_trainer_preset_has_paper_values():
     cfg = _compose("trainer=paper")
     assert (cfg.trainer.n_rays, cfg.render.n_coarse, cfg.render.n_fine) == (1024, 64, 128)
     assert cfg.trainer.max_steps == 150000
+    # every sample in the cylinder reaches the network, as in the authors' code (the
+    # occupancy grid is an opt-in acceleration at the paper's settings)
+    assert cfg.render.skip == "none" and _compose("scale=paper").render.skip == "none"
+    assert _compose().render.skip == "grid"
     # the paper's network, optimiser and schedules (method.md)
     m = cfg.model
     assert (m.depth, m.width, m.skip, m.pos_bands, m.time_bands, m.colour_width) == (
