@@ -20,7 +20,7 @@ from eventrecon.data.layout import read_dataset, read_split
 from eventrecon.data.views import view_key
 from eventrecon.errors import InputError
 from eventrecon.render.cameras import load_camdict
-from eventrecon.render.distortion import distort
+from eventrecon.render.distortion import distort, undistort
 
 H, W, V = 20, 30, 3
 FRAME_TIMES = (0, 200, 1000)
@@ -113,7 +113,11 @@ def test_reads_every_value_exactly(scene):
     cams = sp.cameras
     assert (cams.width, cams.height, len(cams)) == (W, H, V)
     assert cams.names == ["00", "01", "02"]
-    np.testing.assert_array_equal(cams.K.numpy(), np.stack(truth["K"]))
+    # the files' principal point is the authors' (pixel centres at i + 0.5): ours is half
+    # a pixel less (eventrecon.render.cameras.K_from_file)
+    want = np.stack(truth["K"]).copy()
+    want[:, :2, 2] -= 0.5
+    np.testing.assert_array_equal(cams.K.numpy(), want)
     np.testing.assert_allclose(cams.dist.numpy(), np.stack(truth["dist"]), rtol=1e-15)
     np.testing.assert_array_equal(cams.c2w.numpy(), np.stack(truth["c2w"]))
     np.testing.assert_array_equal(sp.frame_times, FRAME_TIMES)
@@ -158,8 +162,25 @@ def test_txt_cameras_take_precedence_over_disagreeing_camdict(tmp_path, caplog):
     (tmp_path / "s" / "camdict.json").write_text(json.dumps(cd))
     with caplog.at_level("WARNING"):
         cams = read_split(tmp_path / "s").cameras
-    np.testing.assert_array_equal(cams.K.numpy(), np.stack(truth["K"]))
+    want = np.stack(truth["K"]).copy()
+    want[:, :2, 2] -= 0.5                        # the files' pixel centres are at i + 0.5
+    np.testing.assert_array_equal(cams.K.numpy(), want)
     assert "camdict.json: K disagrees with intrinsics/ + pose/" in caplog.text
+
+
+def test_pixel_rays_are_the_authors_rays_through_the_half_pixel(tmp_path):
+    """The authors (and NeRF++) cast pixel (u, v)'s ray through (u + ½, v + ½) with the
+    file's K; ours through the pixel centre (u, v) must be the same ray."""
+    truth = write_split(tmp_path / "s", n_events=5)
+    cams = read_split(tmp_path / "s").cameras
+    uv = cams.pixel_grid()                       # integer pixel centres, ours
+    view = torch.zeros(len(uv), dtype=torch.long)
+    ours = cams.pixel_directions(view, uv)       # undistorted camera-frame directions
+    K = truth["K"][0]
+    x = (uv[:, 0].numpy() + 0.5 - K[0, 2]) / K[0, 0]
+    y = (uv[:, 1].numpy() + 0.5 - K[1, 2]) / K[1, 1]
+    xy_authors = undistort(torch.from_numpy(np.stack([x, y], -1)), cams.dist[view])
+    np.testing.assert_allclose(ours[:, :2].numpy(), xy_authors.numpy(), atol=1e-9)
 
 
 def test_greyscale_frames_are_bayer_raw(tmp_path):

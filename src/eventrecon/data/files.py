@@ -28,7 +28,7 @@ from PIL import Image, UnidentifiedImageError
 from eventrecon import TIME_SPAN
 from eventrecon.errors import InputError
 from eventrecon.events.stream import EventStream
-from eventrecon.render.cameras import RIGID_TOL, check_intrinsics, check_rigid
+from eventrecon.render.cameras import RIGID_TOL, K_from_file, check_intrinsics, check_rigid
 
 __all__ = [
     "read_matrix_txt",
@@ -65,7 +65,8 @@ def read_intrinsics(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
     Accepted shapes: 5×5 (``K`` top-left, last row ``k1 k2 p1 p2 k3``), 5×4 (last row
     ``k1 k2 p1 p2``, ``k3 = 0``), 4×4 and 3×3 (``K`` top-left, no distortion).
-    ``K`` must be ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` with ``fx, fy > 0``.
+    ``K`` must be ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` with ``fx, fy > 0``; it is
+    returned in our pixel convention (:func:`eventrecon.render.cameras.K_from_file`).
     """
     m = read_matrix_txt(path, "intrinsics")
     if m.shape not in ((5, 5), (5, 4), (4, 4), (3, 3)):
@@ -77,7 +78,7 @@ def read_intrinsics(path: Path) -> tuple[np.ndarray, np.ndarray]:
         row = m[4]
         dist[: min(5, row.size)] = row[:5]
     check_intrinsics(K, path, "K")
-    return K, dist
+    return K_from_file(K), dist
 
 
 def read_pose(path: Path, tol: float = RIGID_TOL) -> np.ndarray:

@@ -34,7 +34,7 @@ from PIL import Image
 from eventrecon.data.types import Dataset, SplitData
 from eventrecon.errors import InputError
 from eventrecon.events.stream import EventStream
-from eventrecon.render.cameras import Cameras, cameras_to_camdict
+from eventrecon.render.cameras import Cameras, K_to_file, cameras_to_camdict
 
 __all__ = ["write_split", "write_dataset", "write_npz", "write_matrix", "frame_folder"]
 
@@ -87,7 +87,7 @@ def _json_default(o: object) -> object:
 
 def _intrinsics_5x5(cams: Cameras, i: int) -> np.ndarray:
     m = np.zeros((5, 5))
-    m[:3, :3] = cams.K[i].numpy()
+    m[:3, :3] = K_to_file(cams.K[i].numpy())
     m[3, 3] = 1.0
     m[4] = cams.dist[i].numpy()
     return m

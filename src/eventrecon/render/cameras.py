@@ -7,6 +7,11 @@ Conventions (the published dataset's):
   lies in the unit sphere;
 - pixel ``(u, v)`` = (column, row); integer coordinates are pixel *centres*
   (OpenCV), so pixel ``i`` covers ``[i - 0.5, i + 0.5)``;
+- the intrinsics *files* (``intrinsics/*.txt``, ``camdict.json``) follow the authors'
+  code and NeRF++, which cast pixel ``(u, v)``'s ray through ``(u + 0.5, v + 0.5)``: their
+  principal point lies half a pixel further than ours (:data:`FILE_PIXEL_CENTRE`;
+  :func:`K_from_file` / :func:`K_to_file` convert, and every reader and writer of those
+  files goes through them);
 - distortion ``dist = (k1, k2, p1, p2, k3)`` (OpenCV's model, :mod:`.distortion`) acts
   on normalised coordinates ``(x, y) = (X/Z, Y/Z)``, then ``u = fx x_d + cx``,
   ``v = fy y_d + cy``.
@@ -36,7 +41,34 @@ __all__ = [
     "check_rigid",
     "RIGID_TOL",
     "cameras_to_camdict",
+    "FILE_PIXEL_CENTRE",
+    "K_from_file",
+    "K_to_file",
 ]
+
+#: Where the intrinsics files put pixel ``i``'s centre: at ``i + 0.5`` (the authors'
+#: ``get_rays_single_image`` and NeRF++ add half a pixel before applying ``K⁻¹``).
+FILE_PIXEL_CENTRE = 0.5
+
+
+def K_from_file(K: np.ndarray) -> np.ndarray:
+    """``[3, 3]`` intrinsics as stored in the files → ours: the principal point moves by
+    ``−FILE_PIXEL_CENTRE`` so that our ray through pixel centre ``(u, v)`` is the file
+    convention's ray through ``(u + ½, v + ½)``.
+
+    >>> K_from_file(np.array([[100.0, 0, 50.0], [0, 100.0, 40.0], [0, 0, 1]]))[:2, 2].tolist()
+    [49.5, 39.5]
+    """
+    out = np.array(K, dtype=np.float64, copy=True)
+    out[:2, 2] -= FILE_PIXEL_CENTRE
+    return out
+
+
+def K_to_file(K: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`K_from_file`."""
+    out = np.array(K, dtype=np.float64, copy=True)
+    out[:2, 2] += FILE_PIXEL_CENTRE
+    return out
 
 
 @dataclass
@@ -275,7 +307,8 @@ def check_rigid(m: np.ndarray, where: Path | str, field: str = "pose",
 
 def cameras_from_camdict(camdict: dict, source: str | Path = "camdict.json",
                          rigid_tol: float = RIGID_TOL) -> Cameras:
-    """Cameras from a ``camdict.json`` mapping (sorted by image name).
+    """Cameras from a ``camdict.json`` mapping (sorted by image name); ``K`` in the files'
+    pixel convention (:func:`K_from_file`).
 
     Each entry: ``K`` (4×4 flattened; its 3×3 block a proper intrinsic matrix), ``W2C``
     (4×4 flattened, rigid within ``rigid_tol``), optional ``dist`` ``[k1, k2, p1, p2(, k3)]``
@@ -307,7 +340,7 @@ def cameras_from_camdict(camdict: dict, source: str | Path = "camdict.json",
             dist = torch.cat([dist, dist.new_zeros(1)])
         check_intrinsics(K.reshape(4, 4)[:3, :3].numpy(), source, f"{name}.K")
         check_rigid(W2C.reshape(4, 4).numpy(), source, f"{name}.W2C", rigid_tol)
-        Ks.append(K.reshape(4, 4)[:3, :3])
+        Ks.append(torch.from_numpy(K_from_file(K.reshape(4, 4)[:3, :3].numpy())))
         dists.append(dist)
         c2ws.append(torch.linalg.inv(W2C.reshape(4, 4)))
         names.append(Path(name).stem)
@@ -323,7 +356,7 @@ def cameras_to_camdict(cams: Cameras, suffix: str = ".png") -> dict:
     out = {}
     for i, name in enumerate(cams.names):
         K4 = torch.eye(4, dtype=torch.float64)
-        K4[:3, :3] = cams.K[i]
+        K4[:3, :3] = torch.from_numpy(K_to_file(cams.K[i].numpy()))
         out[f"{name}{suffix}"] = {
             "K": K4.reshape(-1).tolist(),
             "W2C": torch.linalg.inv(cams.c2w[i]).reshape(-1).tolist(),

@@ -41,8 +41,10 @@ log = logging.getLogger(__name__)
 #: version 1 have none and are never reused. 3: the event core finds the crossings where
 #: the signal turns (curvature bound, refined extrema) and frames may be area-averaged
 #: (``frame_supersample``). 4: the training background plate averages
-#: ``background_exposures`` exposures (a single noisy frame before).
-SIM_VERSION: int = 4
+#: ``background_exposures`` exposures (a single noisy frame before). 5: the intrinsics
+#: files put pixel centres at ``i + 0.5``, as the authors' code reads them
+#: (:data:`eventrecon.render.cameras.FILE_PIXEL_CENTRE`); the simulated pixels are unchanged.
+SIM_VERSION: int = 5
 
 
 def _meta(spec: SceneSpec, stats: dict) -> dict:
