@@ -174,12 +174,13 @@ def test_importance_samples_follow_the_weights() -> None:
     weights[:, 5] = 0.0
     p = (weights + 1e-6) / (weights + 1e-6).sum(-1, keepdim=True)
 
-    # Deterministic quantiles: bin j receives n p_j samples up to +-1.
-    n = 1000
+    # Deterministic: u = k/(n − 1), so bin j receives (n − 1) p_j samples up to ±1.
+    n = 1001
     s = sample_pdf(bins, weights, n, deterministic=True)
     inside_bin = (s[:, None, :] >= bins[:, :-1, None]) & (s[:, None, :] < bins[:, 1:, None])
-    counts = inside_bin.sum(-1).float()  # [2, m]
-    assert float((counts - n * p).abs().max()) <= 1.0 + 1e-6
+    counts = inside_bin.sum(-1).float()  # [2, m]; u = 1 lands on the last edge itself
+    counts[:, -1] += (s == bins[:, -1:]).sum(-1)
+    assert float((counts - (n - 1) * p).abs().max()) <= 1.0 + 1e-6
 
     # Random draws: chi-square goodness of fit (df = 19, p = 0.999 quantile 43.8).
     n = 100_000
@@ -202,8 +203,8 @@ def test_importance_samples_follow_the_weights() -> None:
 
 def test_importance_sampling_of_all_zero_weights_is_uniform() -> None:
     bins = torch.linspace(0, 1, 9).expand(1, 9)
-    s = sample_pdf(bins, torch.zeros(1, 8), 8, deterministic=True)
-    assert torch.allclose(s, (torch.arange(8.0) + 0.5) / 8, atol=1e-6)
+    s = sample_pdf(bins, torch.zeros(1, 8), 9, deterministic=True)
+    assert torch.allclose(s, torch.arange(9.0) / 8, atol=1e-6)
 
 
 def test_step_sizes_are_the_authors_forward_differences_and_the_fine_histogram_too() -> None:

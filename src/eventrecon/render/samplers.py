@@ -139,9 +139,9 @@ def sample_pdf(
     The pdf is :math:`p_j \\propto w_j + \\epsilon` on bin ``[bins_j, bins_{j+1})``
     (``ε`` keeps an all-zero ray uniform), the CDF :math:`F_j = \\sum_{i<j} p_i`, and a
     sample is :math:`F^{-1}(u)` by linear interpolation inside the bin found by binary
-    search. ``u`` are the quantiles ``(k + 1/2)/n`` if ``deterministic`` (then bin ``j``
-    receives ``n·p_j`` samples up to ±1), else sorted uniforms. Weights are detached:
-    sample positions carry no gradient.
+    search. ``u`` are ``k/(n − 1)``, evenly from 0 to 1, if ``deterministic`` (the authors'
+    evaluation; bin ``j`` then receives ``(n − 1)·p_j`` samples up to ±1), else sorted
+    uniforms. Weights are detached: sample positions carry no gradient.
 
     Args:
         bins: ``[N, M+1]`` increasing bin edges.
@@ -155,8 +155,8 @@ def sample_pdf(
         ``[N, n]`` sorted samples within ``[bins_0, bins_M]``.
 
     >>> b = torch.tensor([[0.0, 1.0, 2.0]])
-    >>> sample_pdf(b, torch.tensor([[0.0, 1.0]]), 2, deterministic=True, eps=0.0)
-    tensor([[1.2500, 1.7500]])
+    >>> sample_pdf(b, torch.tensor([[0.0, 1.0]]), 3, deterministic=True, eps=0.0)
+    tensor([[1.0000, 1.5000, 2.0000]])
     """
     w = weights.detach().to(bins.dtype).clamp(min=0) + eps
     pdf = w / w.sum(dim=-1, keepdim=True).clamp(min=torch.finfo(w.dtype).tiny)
@@ -164,7 +164,7 @@ def sample_pdf(
     cdf[:, -1] = 1.0
     n_rays, m = weights.shape
     if deterministic:
-        u = (torch.arange(n, device=bins.device, dtype=bins.dtype) + 0.5) / n
+        u = torch.linspace(0.0, 1.0, n, device=bins.device, dtype=bins.dtype)
         u = u.expand(n_rays, n).contiguous()
     else:
         u = uniform((n_rays, n), gen, bins).sort(dim=-1).values
