@@ -367,7 +367,7 @@ def test_findings_pair_only_runs_of_one_method_version(tmp_path):
 
 
 def test_collapsed_cells_set_each_collapse_beside_the_papers_own_cell(tmp_path):
-    from eventrecon.report.findings import collapsed_cells, collapsed_cells_markdown
+    from eventrecon.report.collapses import collapsed_cells, collapsed_cells_markdown
 
     jobs = []
     for seed in range(3):

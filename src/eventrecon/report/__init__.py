@@ -8,7 +8,7 @@ ours as mean ± 95 % interval over seeds, Δ; "—" for missing runs, "collapsed
 for runs that are not results), ``accuracy_vs_time.png`` / ``.md`` and ``findings.md``
 (the paper's claims, checked). Modules: :mod:`.paper` (the paper's numbers),
 :mod:`.runs` (collecting run folders), :mod:`.stats` (means, intervals),
-:mod:`.tables`, :mod:`.curves`, :mod:`.findings`, :mod:`.format`.
+:mod:`.tables`, :mod:`.curves`, :mod:`.findings`, :mod:`.collapses`, :mod:`.format`.
 """
 
 from __future__ import annotations
@@ -17,11 +17,10 @@ import logging
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
+from eventrecon.report.collapses import collapsed_cells, collapsed_cells_markdown
 from eventrecon.report.curves import DEFAULT_LEVELS, write_accuracy_vs_time
 from eventrecon.report.findings import (
     check_findings,
-    collapsed_cells,
-    collapsed_cells_markdown,
     findings_markdown,
     row_differences,
     row_differences_markdown,

@@ -30,9 +30,8 @@ spread of ours, for the paper's difference to lie outside the noise
 (:func:`.stats.pairs_to_resolve`) -- an inconclusive verdict with far fewer pairs than that
 is a comparison too small to see the paper's effect, not evidence against it.
 
-Beside the claims: the full model against each Tab. 3 row (:func:`row_differences`), and
-every cell with collapsed runs set beside the paper's value for that cell
-(:func:`collapsed_cells`): a collapse is expected only where the paper's own run failed.
+Beside the claims: the full model against each Tab. 3 row (:func:`row_differences`).
+Collapsed cells against the paper's are :mod:`.collapses`.
 """
 
 from __future__ import annotations
@@ -42,24 +41,18 @@ from dataclasses import dataclass
 
 from eventrecon.report.format import fmt, markdown_table
 from eventrecon.report.paper import PAPER_TABLES
-from eventrecon.report.rows import ROW_OF, method_row, setting_label
+from eventrecon.report.rows import method_row, setting_label
 from eventrecon.report.runs import Run
 from eventrecon.report.stats import MeanCI, mean_ci, pairs_to_resolve
-from eventrecon.report.tables import REAL_SCENE, SCENE_TO_PAPER
+from eventrecon.report.tables import REAL_SCENE, paper_column
 
 __all__ = ["Finding", "check_findings", "findings_markdown", "RowDifference",
-           "row_differences", "row_differences_markdown", "CollapsedCell", "collapsed_cells",
-           "collapsed_cells_markdown"]
+           "row_differences", "row_differences_markdown", "paired", "paper_difference"]
 
 #: ± dB within which a difference "barely matters" (claim 6).
 FPS_TOLERANCE_DB = 0.5
 
 _FPS_CLAIM = "RGB frame rate barely matters (Tab. 5)"
-
-#: A paper cell this many dB or more below the best cell of its column counts as a failure
-#: of the paper's own run (e.g. Static Lego: w/o L_acc 16.06 and only L_event 16.50 against
-#: the full model's 23.86).
-PAPER_FAILURE_DB = 5.0
 
 
 @dataclass
@@ -115,7 +108,7 @@ def paper_difference(runs: Sequence[Run], table: str, labels: tuple[str, str],
                      metric: str) -> float | None:
     """The paper's ``labels[0] − labels[1]`` in ``metric``, averaged over the paper
     columns that the scenes of our pairs stand for (``None`` where it has none)."""
-    columns = [c for sc in _pair_scenes(runs, a, b) if (c := _paper_column(table, sc))]
+    columns = [c for sc in _pair_scenes(runs, a, b) if (c := paper_column(table, sc))]
     return PAPER_TABLES[table].difference(*labels, metric, columns)
 
 
@@ -338,72 +331,6 @@ def row_differences_markdown(diffs: Sequence[RowDifference]) -> str:
               "resolve it: (scene, seed) pairs that, at the spread of ours (all scenes), give a "
               "95 % interval narrower than the paper's difference (\"met\": n has them); paper "
               "inside ours **no**: our runs rule the paper's difference out at this scale.\n")
-
-
-@dataclass
-class CollapsedCell:
-    """A table cell with collapsed runs, beside the paper's value for the same cell.
-
-    ``paper_gap`` is the paper's best PSNR in that column minus the paper's PSNR for the
-    cell (``None`` when the paper has no such cell); ``paper_fails`` says whether the
-    gap is at least :data:`PAPER_FAILURE_DB`, i.e. the paper's own run failed there too.
-    """
-
-    table: str
-    row: str
-    scene: str
-    collapsed_seeds: list[int]
-    runs: int
-    paper_psnr: float | None
-    paper_gap: float | None
-
-    @property
-    def paper_fails(self) -> bool | None:
-        return None if self.paper_gap is None else self.paper_gap >= PAPER_FAILURE_DB
-
-
-def _paper_column(table: str, scene: str) -> str | None:
-    """The paper's column a scene of ours stands for, as :func:`.tables.build_table` pairs
-    them: Tab. 3 by :data:`SCENE_TO_PAPER`, Tab. 4–7 by their one column."""
-    return SCENE_TO_PAPER.get(scene) if table == "table3" else PAPER_TABLES[table].columns[0]
-
-
-def collapsed_cells(runs: Sequence[Run]) -> list[CollapsedCell]:
-    """Every (table, row, scene) cell of Tab. 3–7 with at least one collapsed run, with the
-    paper's PSNR for the cell and its gap to the best of the paper's column — the check of
-    "no cell collapses unless the paper's own cell does"."""
-    cells: dict[tuple[str, str, str], dict[int, Run]] = {}
-    for r in sorted(runs, key=lambda r: r.recency):  # a re-run of a seed replaces it
-        if r.experiment in ROW_OF and (row := ROW_OF[r.experiment](r, r.experiment)):
-            cells.setdefault((r.experiment, row, r.scene), {})[int(r.record.get("seed") or 0)] = r
-    out = []
-    for (table, row, scene), members in sorted(cells.items()):
-        seeds = sorted(seed for seed, r in members.items() if r.status == "collapsed")
-        if not seeds:
-            continue
-        paper, column = PAPER_TABLES[table], _paper_column(table, scene)
-        value = paper.value(row, column) if column else None
-        best = max((v[0] for k, v in paper.values.items() if k[1] == column), default=None)
-        gap = None if value is None or best is None else best - value[0]
-        out.append(CollapsedCell(table, row, scene, seeds, len(members),
-                                 value[0] if value else None, gap))
-    return out
-
-
-def collapsed_cells_markdown(cells: Sequence[CollapsedCell]) -> str:
-    """:func:`collapsed_cells` as a Markdown section ("" when nothing collapsed)."""
-    if not cells:
-        return ""
-    verdict = {True: "yes", False: "**no**", None: "—"}
-    rows = [[c.table, c.row, f"`{c.scene}`", f"{len(c.collapsed_seeds)}/{c.runs}",
-             ", ".join(map(str, c.collapsed_seeds)), fmt(c.paper_psnr, 2),
-             fmt(c.paper_gap, 2), verdict[c.paper_fails]] for c in cells]
-    header = ["table", "row", "scene", "collapsed / runs", "seeds", "paper PSNR",
-              "paper: column best − cell (dB)", "paper's cell fails too"]
-    return ("## Collapsed cells against the paper's\n\n" + markdown_table(header, rows)
-            + f"\n\n- The paper's cell fails too when it lies {PAPER_FAILURE_DB:g} dB or more "
-              "below the best cell of its column; **no**: a collapse the paper does not "
-              "have.\n")
 
 
 def _gain(r: Run) -> float | None:

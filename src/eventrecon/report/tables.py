@@ -70,6 +70,16 @@ SCENE_TO_PAPER: dict[str, str] = {"blender": "Blender", "dress": "Dress", "spher
 #: Our counterpart of the real "Sword" scene (Tab. 4–6).
 REAL_SCENE = "rig_lowlight"
 
+
+def paper_column(table: str, scene: str) -> str | None:
+    """The paper's column a scene of ours stands for, as :func:`build_table` pairs them:
+    Tab. 3 by :data:`SCENE_TO_PAPER`, Tab. 4–7 by their one column.
+
+    >>> paper_column("table3", "static_lego"), paper_column("table5", "rig_lowlight")
+    ('Static Lego', 'Sword')
+    """
+    return SCENE_TO_PAPER.get(scene) if table == "table3" else PAPER_TABLES[table].columns[0]
+
 @dataclass(frozen=True)
 class Group:
     """A column group: the paper's column (or ``None``) paired with our scene (or ``None``)."""
