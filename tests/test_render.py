@@ -260,10 +260,11 @@ def test_opaque_wall_gives_its_colour_and_depth() -> None:
     field = WallField(0.1, 1e6, (0.2, 0.4, 0.6))
     coarse, fine = Renderer(64, 128)(field, o, d, torch.zeros(4, 1), torch.ones(4, 3),
                                      perturb=True, gen=torch.Generator().manual_seed(0))
-    # Depth is the first sample behind the wall: coarse gaps are at most two strata
-    # (2/64). The fine samples fill the one cell holding all the weight, which starts at
-    # most half a gap (1/64) behind the wall, with 128 samples.
-    for level, tol in ((coarse, 2.0 / 64), (fine, 1.0 / 64 + 2.0 / 64 / 128)):
+    # Depth is the first sample behind the wall: the 64 coarse points are 1/63 apart and
+    # each is jittered by up to half that, so coarse gaps are at most 2/63. The fine
+    # samples fill the one cell holding all the weight, which starts at most half a gap
+    # (1/63) behind the wall, with 128 samples.
+    for level, tol in ((coarse, 2.0 / 63), (fine, 1.0 / 63 + 2.0 / 63 / 128)):
         assert torch.allclose(level["rgb"], torch.tensor([0.2, 0.4, 0.6]).expand(4, 3), atol=1e-6)
         assert torch.allclose(level["opacity"], torch.ones(4))
         assert float((level["depth"].detach() - 2.1).abs().max()) <= tol

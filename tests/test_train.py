@@ -115,7 +115,7 @@ def test_each_view_draws_its_own_reference_frame_and_its_rays_agree_with_it(data
     for step in range(12):
         batch = b.sample(64, step_generator(7, step))
         view, row, col = batch["view"], batch["row"], batch["col"]
-        t1 = b.segment.units(batch["t1"][0, 0].double())
+        t1 = b.segment.units(b.last_window[1])          # the window's own end, float64
         per_view = []
         for v in view.unique().tolist():
             t_ref = batch["t_ref"][view == v, 0]
@@ -125,7 +125,7 @@ def test_each_view_draws_its_own_reference_frame_and_its_rays_agree_with_it(data
         t_ref_u = b.segment.units(batch["t_ref"][:, 0].double())
         ref = (b.frame_times[None, :] - t_ref_u[:, None]).abs().argmin(1)
         # the frame is one of the two nearest t1
-        near2 = (b.frame_times - t1).abs().argsort(stable=True)[:2]
+        near2 = (b.frame_times - float(t1)).abs().argsort(stable=True)[:2]
         assert bool(torch.isin(ref, near2).all())
         assert torch.equal(batch["ref_rgb"], b.frames[ref, view, row, col])
         pix = (view * H + row) * W + col

@@ -4,8 +4,9 @@ Each call of :meth:`RayBatcher.sample` draws, with its own generator,
 
 1. a window ``(t0, t1)`` of the segment (normalised times, docs/method.md "Per-iteration
    sampling"), shared by all views;
-2. ``n_rays`` pixels split equally over the training views, per view a fraction
-   ``neg_ratio`` uniform over the image and the rest on pixels with ``E(t0, t1) ≠ 0``;
+2. ``n_rays`` pixels split equally over the training views, per view
+   ``⌊n·(1 − neg_ratio)⌋`` on pixels with ``E(t0, t1) ≠ 0`` and the rest uniform over
+   the image, each set without replacement (the authors' ``random_sample``);
 3. per view, a reference frame among the two nearest to ``t1`` (drawn for each view
    on its own, as the authors' code does) and ``E_ref→1 = V(t1) − V(t_ref)``;
 4. rays through the pixels jittered by ±0.5 px.
@@ -63,7 +64,8 @@ class RayBatcher:
         segment: the time span trained.
         decay: event decay ``b`` (1 = plain polarity sum).
         bayer: whether event pixels are colour (RGGB) pixels.
-        neg_ratio: fraction of rays drawn uniformly over all pixels.
+        neg_ratio: per view, ``⌊n·(1 − neg_ratio)⌋`` of its ``n`` rays go to pixels with
+            events and the rest uniformly over all pixels, each set without replacement.
         device: where the batch tensors live.
     """
 

@@ -40,7 +40,8 @@ class SegmentDataModule(L.LightningDataModule):
         segment: the time span trained.
         decay: event decay ``b``.
         bayer: colour (RGGB) event pixels.
-        neg_ratio: fraction of rays drawn uniformly over all pixels.
+        neg_ratio: per view, ``⌊n·(1 − neg_ratio)⌋`` rays on event pixels, the rest
+            uniform (:func:`eventrecon.data.sampling.sample_pixels`).
 
     After :meth:`setup`, :attr:`batcher` holds the split on the trainer's device.
     """

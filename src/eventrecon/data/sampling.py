@@ -70,7 +70,9 @@ def _distinct(pool: Tensor, group: Tensor, distinct: Tensor, gen: torch.Generato
 
     Duplicates (every occurrence of a ``(group, index)`` after its first) are drawn again
     until none are left. The procedure treats every index alike, so each set of distinct
-    indices is equally likely: the same law as drawing without replacement.
+    indices is equally likely: the same law as drawing without replacement. A group that
+    asks for more than half its pool takes the first indices of a random permutation
+    instead (redrawing would need about ``pool·ln(pool)`` draws there).
 
     Args:
         pool: ``[K]`` int64 sizes (≥ 1); a distinct group must not ask for more than its
@@ -86,6 +88,14 @@ def _distinct(pool: Tensor, group: Tensor, distinct: Tensor, gen: torch.Generato
     idx = (_rand(pool.numel(), gen) * pool).long().clamp_max(pool - 1)
     if idx.numel() < 2:
         return idx
+    asked = torch.bincount(group[distinct], minlength=int(group.max()) + 1)   # per group
+    heavy = distinct & (2 * asked[group] > pool)
+    if bool(heavy.any()):                        # most of a pool: a permutation's first k
+        distinct = distinct & ~heavy
+        for g in torch.unique(group[heavy]).tolist():
+            members = torch.nonzero(group == g).squeeze(1)
+            idx[members] = torch.randperm(int(pool[members[0]]), generator=gen,
+                                          device=gen.device)[: members.numel()]
     span = int(pool.max()) + 1
     while True:
         order = torch.sort(group * span + idx, stable=True)

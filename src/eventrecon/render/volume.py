@@ -134,7 +134,8 @@ class Renderer(nn.Module):
     ([(1, 3), (1, 3)], (1, 16))
 
     Args:
-        n_coarse: stratified samples per ray (> 0).
+        n_coarse: stratified samples per ray (≥ 2; ≥ 3 with a fine level, whose histogram
+            has ``n_coarse − 2`` bins).
         n_fine: importance samples per ray (0: one level only).
         radius, y_min, y_max: the clipping cylinder (:class:`Cylinder`).
         clip_scale: initial radius factor of the density mask.
@@ -170,10 +171,12 @@ class Renderer(nn.Module):
         query_rows: int = 16384,
     ) -> None:
         super().__init__()
-        if n_coarse < 1:
-            raise InputError("renderer", "n_coarse", "an integer >= 1", n_coarse)
         if n_fine < 0:
             raise InputError("renderer", "n_fine", "an integer >= 0", n_fine)
+        if n_coarse < (3 if n_fine else 2):
+            raise InputError("renderer", "n_coarse",
+                             f"an integer >= {3 if n_fine else 2} (with n_fine = {n_fine})",
+                             n_coarse)
         if chunk < 1:
             raise InputError("renderer", "chunk", "an integer >= 1", chunk)
         for name, value in (("query_buckets", query_buckets), ("query_rows", query_rows)):
