@@ -522,3 +522,25 @@ def test_findings_set_the_papers_difference_beside_ours(tmp_path):
     # the closest row (w/o L_sparsity, mean 0) decides; the paper's difference is its own
     assert "w/o L_sparsity" in best.cells and best.paper == pytest.approx(sparsity.paper)
     assert best.needed == sparsity.needed
+
+
+def test_full_model_best_waits_for_rows_without_pairs_of_one_version(tmp_path):
+    """A table partly re-run at a new method version: the full model beats the one row
+    re-run with it, but a row still at the old version has no pairs and must not let the
+    claim hold."""
+    from eventrecon.records import METHOD_VERSION
+    from eventrecon.report.findings import check_findings
+    from eventrecon.report.runs import current_runs
+
+    new, old = {"method_version": METHOD_VERSION}, {"method_version": None}
+    jobs = []
+    for seed in range(3):
+        jobs += [_metrics("spheres", psnr=25.0, seed=seed, experiment="table3", **new),
+                 _metrics("spheres", loss="no_event", psnr=24.0 - 0.1 * seed, seed=seed,
+                          experiment="table3", **new),
+                 _metrics("spheres", model="ngp", psnr=30.0, seed=seed, experiment="table3",
+                          **old)]
+    runs = current_runs(collect_runs([_sweep(tmp_path, jobs).parent.parent]))
+    best = {f.claim: f for f in check_findings(runs)}["Full model best on average (Tab. 3)"]
+    assert best.verdict == "inconclusive" and best.diff.mean == pytest.approx(1.1)
+    assert "1 row(s) without scored pairs of one method version" in best.note

@@ -166,7 +166,9 @@ def _against_each(runs: Sequence[Run], table: str, full: str, metric: str = "psn
 def _full_vs_each(runs: Sequence[Run], table: str, full: str, metric: str, sign: int,
                   claim: str) -> Finding:
     """The full row against every other row: holds if better than each, fails if some row
-    is better; the evidence shown is the closest competitor, beside the paper's."""
+    is better; the evidence shown is the closest competitor, beside the paper's. A row
+    with runs but no scored pair of one method version (a table partly re-run at a new
+    version) keeps the claim from holding: it is inconclusive until that row has pairs."""
     each = _against_each(runs, table, full, metric)
     lost = sum(n_lost for _, _, n_lost in each)
     results = [(lab, d) for lab, d, _ in each if d is not None]
@@ -176,8 +178,14 @@ def _full_vs_each(runs: Sequence[Run], table: str, full: str, metric: str, sign:
     lab, d = min(results, key=lambda x: sign * x[1].mean)
     verdict = ("fails" if "fails" in verdicts else "holds" if all(v == "holds" for v in verdicts)
                else "inconclusive")
+    unpaired = [row for row, d_row, _ in each if d_row is None]
+    if unpaired and verdict == "holds":
+        verdict = "inconclusive"
+    note = "; ".join(x for x in (
+        f"{len(unpaired)} row(s) without scored pairs of one method version" if unpaired else "",
+        _lost(lost)) if x)
     f = Finding(claim, verdict, d, metric.upper(),
-                f"`{full}` − `{lab}` (closest of {len(results)} rows)", _lost(lost))
+                f"`{full}` − `{lab}` (closest of {len(results)} rows)", note)
     return _beside_paper(f, runs, table, (full, lab), _row(table, full), _row(table, lab))
 
 
