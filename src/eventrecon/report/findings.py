@@ -88,19 +88,17 @@ def paired(runs: Sequence[Run], a: Callable[[Run], bool], b: Callable[[Run], boo
     as the rows' difference), and the number of runs of either side that were not scored
     (collapsed or failed)."""
     lost = sum(1 for r in runs if not r.ok and (a(r) or b(r)))
-    ra, rb = _scored(runs, a), _scored(runs, b)
-    diffs = [va - vb for k in ra.keys() & rb.keys()
-             if ra[k].version == rb[k].version
-             and (va := ra[k].metric(metric)) is not None
-             and (vb := rb[k].metric(metric)) is not None]
+    diffs = [va - vb for _, ra, rb in _pairs(runs, a, b)
+             if (va := ra.metric(metric)) is not None and (vb := rb.metric(metric)) is not None]
     return (mean_ci(diffs) if diffs else None), lost
 
 
-def _pair_scenes(runs: Sequence[Run], a: Callable[[Run], bool], b: Callable[[Run], bool]
-                 ) -> list[str]:
-    """The scenes of the pairs :func:`paired` forms."""
+def _pairs(runs: Sequence[Run], a: Callable[[Run], bool], b: Callable[[Run], bool]
+           ) -> list[tuple[tuple, Run, Run]]:
+    """``((scene, seed), run a, run b)`` for every pair of scored runs made with the same
+    method version."""
     ra, rb = _scored(runs, a), _scored(runs, b)
-    return sorted({k[0] for k in ra.keys() & rb.keys() if ra[k].version == rb[k].version})
+    return [(k, ra[k], rb[k]) for k in ra.keys() & rb.keys() if ra[k].version == rb[k].version]
 
 
 def paper_difference(runs: Sequence[Run], table: str, labels: tuple[str, str],
@@ -108,17 +106,25 @@ def paper_difference(runs: Sequence[Run], table: str, labels: tuple[str, str],
                      metric: str) -> float | None:
     """The paper's ``labels[0] − labels[1]`` in ``metric``, averaged over the paper
     columns that the scenes of our pairs stand for (``None`` where it has none)."""
-    columns = [c for sc in _pair_scenes(runs, a, b) if (c := paper_column(table, sc))]
+    scenes = {k[0] for k, _, _ in _pairs(runs, a, b)}
+    columns = [c for sc in scenes if (c := paper_column(table, sc))]
     return PAPER_TABLES[table].difference(*labels, metric, columns)
+
+
+def _against_paper(d: MeanCI | None, runs: Sequence[Run], table: str, labels: tuple[str, str],
+                   a: Callable[[Run], bool], b: Callable[[Run], bool], metric: str
+                   ) -> tuple[float | None, int | None]:
+    """The paper's difference for a comparison (:func:`paper_difference`) and the pairs
+    that would resolve it at the spread of ``d``."""
+    paper = paper_difference(runs, table, labels, a, b, metric)
+    return paper, (pairs_to_resolve(d, paper) if d is not None and paper is not None else None)
 
 
 def _beside_paper(f: Finding, runs: Sequence[Run], table: str, labels: tuple[str, str],
                   a: Callable[[Run], bool], b: Callable[[Run], bool]) -> Finding:
     """``f`` with the paper's difference for its comparison and the pairs that would
     resolve it at our spread."""
-    f.paper = paper_difference(runs, table, labels, a, b, f.metric.lower())
-    if f.diff is not None and f.paper is not None:
-        f.needed = pairs_to_resolve(f.diff, f.paper)
+    f.paper, f.needed = _against_paper(f.diff, runs, table, labels, a, b, f.metric.lower())
     return f
 
 
@@ -307,9 +313,8 @@ def row_differences(runs: Sequence[Run], table: str = "table3",
     moving = {lab: d for lab, d, _ in _against_each(_moving(t), table, full)}
     out = []
     for lab, d, lost in _against_each(t, table, full):
-        paper = paper_difference(t, table, (full, lab), _row(table, full), _row(table, lab),
-                                 "psnr")
-        needed = pairs_to_resolve(d, paper) if d is not None and paper is not None else None
+        paper, needed = _against_paper(d, t, table, (full, lab), _row(table, full),
+                                       _row(table, lab), "psnr")
         out.append(RowDifference(lab, d, moving.get(lab), lost, paper, needed))
     return sorted(out, key=lambda x: x.all_scenes.mean if x.all_scenes else float("inf"))
 
@@ -372,7 +377,7 @@ def findings_markdown(findings: Sequence[Finding]) -> str:
         diff = (f"{fmt(f.diff.mean, 3)} ± {fmt(f.diff.half, 3)}" if f.diff and f.diff.half
                 else fmt(f.diff.mean, 3) if f.diff else "—")
         rows.append([f.claim, f.verdict, f.metric, diff, str(f.diff.n if f.diff else 0),
-                     fmt(f.paper, 3), _inside(f.paper, f.diff) if f.claim != _FPS_CLAIM else "—",
+                     fmt(f.paper, 3), _inside(f.paper, f.diff),
                      _needed_text(f.needed, f.diff), f.cells, f.note])
     header = ["claim (supplementary)", "verdict", "metric", "paired difference ± 95 %", "n",
               "paper", "paper inside ours", "pairs to resolve the paper's", "cells", "note"]
