@@ -78,6 +78,24 @@ def test_annealing_window_turns_bands_on_in_order() -> None:
         assert 0.0 < band_window(4, 100 * k + 30, 400)[k] < 1.0
     enc.set_progress(10_000)
     assert torch.allclose(enc(x), full, atol=1e-6)
+
+
+def test_a_window_of_ones_is_skipped_exactly_and_a_loaded_window_is_applied() -> None:
+    """Once every band is on the window is not multiplied in (×1 is exact): the same bits
+    as multiplying; a window loaded from a state dict is applied whatever it was before."""
+    x = torch.rand(9, 3) * 2 - 1
+    enc = PositionalEncoding(3, 4, anneal_steps=400)
+    enc.set_progress(10_000)
+    xb = x[:, None, :] * enc.freqs[:, None]
+    feats = torch.cat([torch.sin(xb), torch.cos(xb)], dim=-1) * enc.window[:, None]
+    assert torch.equal(enc(x), torch.cat([x, feats.reshape(9, -1)], dim=-1))
+    half = PositionalEncoding(3, 4, anneal_steps=400)
+    half.set_progress(150)                       # window (1, 0.5, 0, 0)
+    enc.load_state_dict(half.state_dict())
+    assert torch.equal(enc(x), half(x)) and torch.equal(enc(x)[:, 15:], torch.zeros(9, 12))
+    none = PositionalEncoding(3, 4, anneal_steps=0)
+    half.load_state_dict(none.state_dict())      # all on, loaded: no longer scaled
+    assert torch.equal(half(x), none(x))
     # the window is a checkpointed buffer
     assert "window" in enc.state_dict()
 

@@ -27,14 +27,17 @@ features before the hidden colour layer, which changes nothing but that layer's 
 initialisation range (``1/sqrt(fan_in)`` with ``fan_in = 256 + 27``): it is initialised
 with that range here.
 
-The factor 2 of ``2·ReLU`` is not applied as a multiplication: the layer after it gets
-it as ``addmm``'s ``alpha`` (``W (2 r) + b = 2 (W r) + b``). Scaling by a power of two is
-exact in floating point, so outputs and gradients are bit for bit those of the explicit
-``2·ReLU`` (``tests/test_nerf_field.py``), and a full-size pass over the activations goes
-away each way: the 4×64 field's forward + backward on 35 840 samples took 216 instead of
-251 ms at one thread and 133 instead of 150 ms at two (2-core AMD EPYC; paired ratio
-1.07 over 20 alternated repeats). The linear layers are therefore applied through
-their parameters, not called as modules: hooks registered on them do not run.
+The factor 2 of ``2·ReLU`` is not applied as a multiplication over the activations:
+the layer after it multiplies its weight instead (``W (2 r) + b = (2W) r + b``, a
+product over the ``[out, in]`` weight, not the ``[N, in]`` activations). Scaling by a
+power of two is exact in floating point, so outputs and gradients are bit for bit those
+of the explicit ``2·ReLU`` (``tests/test_nerf_field.py``), and a full-size pass over the
+activations goes away each way. Folding the factor into ``addmm``'s ``alpha`` instead
+(the form before) saves the forward pass only: autograd's backward of ``addmm`` scales
+the ``[N, in]`` input gradient by ``alpha`` in a pass of its own, five per step in the
+4×64 field (~10 % of its profiled time; docs/results "Session 30"). The linear layers
+are therefore applied through their parameters, not called as modules: hooks registered
+on them do not run.
 """
 
 from __future__ import annotations
@@ -59,9 +62,10 @@ ZEROED_VIEWDIR_FEATURES = 27
 
 
 def _linear(layer: nn.Linear, h: Tensor, scale: float) -> Tensor:
-    """``layer(scale·h)`` for ``h [N, in]``, computed as ``b + scale·(h Wᵀ)`` in one
-    ``addmm`` (``scale`` 1 or 2: exact either way)."""
-    return torch.addmm(layer.bias, h, layer.weight.t(), alpha=scale)
+    """``layer(scale·h)`` for ``h [N, in]``, computed as ``b + h (scale·W)ᵀ`` in one
+    ``addmm`` (``scale`` 1 or 2: exact either way, also in the backward pass)."""
+    weight = layer.weight if scale == 1.0 else layer.weight * scale
+    return torch.addmm(layer.bias, h, weight.t())
 
 
 class NeRFField(Field):
