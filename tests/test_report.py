@@ -524,6 +524,45 @@ def test_findings_set_the_papers_difference_beside_ours(tmp_path):
     assert best.needed == sparsity.needed
 
 
+def test_a_paper_cell_that_repeats_another_rows_is_named_with_the_difference_without_it(
+        tmp_path):
+    """The paper's Blender cell of w/o L_event equals w/o clipping's in all three metrics:
+    the L_event comparison on blender + spheres keeps the printed difference and says what
+    it is without that column (the Spheres cells alone); rows without a repeated cell
+    carry no note."""
+    from eventrecon.report.findings import (
+        check_findings,
+        row_differences,
+        row_differences_markdown,
+    )
+
+    t3 = PAPER_TABLES["table3"]
+    assert t3.repeated("w/o L_event", "Blender") == "w/o clipping"
+    assert t3.repeated("w/o clipping", "Blender") == "w/o L_event"
+    assert t3.repeated("w/o L_event", "Spheres") is None
+    assert t3.repeated("w/o L_event", "Average") is None       # a mean, not a measurement
+    jobs = []
+    for seed in range(3):
+        for scene in ("blender", "spheres"):
+            jobs += [_metrics(scene, psnr=25.0, seed=seed, experiment="table3"),
+                     _metrics(scene, loss="no_event", psnr=24.0 - 0.1 * seed, seed=seed,
+                              experiment="table3"),
+                     _metrics(scene, model="ngp", psnr=24.5, seed=seed, experiment="table3")]
+    runs = collect_runs([_sweep(tmp_path, jobs).parent.parent])
+    event = {f.claim: f for f in check_findings(runs)}[
+        "Removing L_event hurts on scenes with events (Tab. 3)"]
+    printed = sum(t3.value("Full Model", c)[0] - t3.value("w/o L_event", c)[0]
+                  for c in ("Blender", "Spheres")) / 2
+    assert event.paper == pytest.approx(printed) and printed == pytest.approx(4.7465)
+    spheres_only = 29.765 - 27.744
+    assert "Blender `w/o L_event` = `w/o clipping`" in event.note
+    assert f"difference is {spheres_only:.2f} (inside ours: no)" in event.note
+    diffs = {d.row: d for d in row_differences(runs)}
+    assert diffs["NGP"].note == "" and "without it" in diffs["w/o L_event"].note
+    md = row_differences_markdown(list(diffs.values()))
+    assert "- w/o L_event: the paper repeats a cell" in md and "- NGP:" not in md
+
+
 def test_full_model_best_waits_for_rows_without_pairs_of_one_version(tmp_path):
     """A table partly re-run at a new method version: the full model beats the one row
     re-run with it, but a row still at the old version has no pairs and must not let the

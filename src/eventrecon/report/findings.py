@@ -31,7 +31,8 @@ spread of ours, for the paper's difference to lie outside the noise
 is a comparison too small to see the paper's effect, not evidence against it.
 
 Beside the claims: the full model against each Tab. 3 row (:func:`row_differences`).
-Collapsed cells against the paper's are :mod:`.collapses`.
+The pairing and the paper's side of each comparison are :mod:`.pairs`; collapsed cells
+against the paper's are :mod:`.collapses`.
 """
 
 from __future__ import annotations
@@ -40,11 +41,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from eventrecon.report.format import fmt, markdown_table
-from eventrecon.report.paper import PAPER_TABLES
+from eventrecon.report.pairs import against_paper, inside, needed_text, paired, paper_difference
 from eventrecon.report.rows import method_row, setting_label
 from eventrecon.report.runs import Run
 from eventrecon.report.stats import MeanCI, mean_ci, pairs_to_resolve
-from eventrecon.report.tables import REAL_SCENE, paper_column
+from eventrecon.report.tables import REAL_SCENE
 
 __all__ = ["Finding", "check_findings", "findings_markdown", "RowDifference",
            "row_differences", "row_differences_markdown", "paired", "paper_difference"]
@@ -72,59 +73,13 @@ class Finding:
     needed: int | None = None
 
 
-def _scored(runs: Sequence[Run], pick: Callable[[Run], bool]) -> dict[tuple, Run]:
-    """``(scene, seed) → run`` of the scored runs that ``pick`` selects (newest wins)."""
-    out: dict[tuple, Run] = {}
-    for r in sorted(runs, key=lambda r: r.recency):
-        if r.ok and pick(r):
-            out[(r.scene, r.record.get("seed"))] = r
-    return out
-
-
-def paired(runs: Sequence[Run], a: Callable[[Run], bool], b: Callable[[Run], bool],
-           metric: str = "psnr") -> tuple[MeanCI | None, int]:
-    """Mean ± interval of ``metric(a) − metric(b)`` over common (scene, seed) pairs made
-    with the same method version (a pair across versions would count the method's change
-    as the rows' difference), and the number of runs of either side that were not scored
-    (collapsed or failed)."""
-    lost = sum(1 for r in runs if not r.ok and (a(r) or b(r)))
-    diffs = [va - vb for _, ra, rb in _pairs(runs, a, b)
-             if (va := ra.metric(metric)) is not None and (vb := rb.metric(metric)) is not None]
-    return (mean_ci(diffs) if diffs else None), lost
-
-
-def _pairs(runs: Sequence[Run], a: Callable[[Run], bool], b: Callable[[Run], bool]
-           ) -> list[tuple[tuple, Run, Run]]:
-    """``((scene, seed), run a, run b)`` for every pair of scored runs made with the same
-    method version."""
-    ra, rb = _scored(runs, a), _scored(runs, b)
-    return [(k, ra[k], rb[k]) for k in ra.keys() & rb.keys() if ra[k].version == rb[k].version]
-
-
-def paper_difference(runs: Sequence[Run], table: str, labels: tuple[str, str],
-                     a: Callable[[Run], bool], b: Callable[[Run], bool],
-                     metric: str) -> float | None:
-    """The paper's ``labels[0] − labels[1]`` in ``metric``, averaged over the paper
-    columns that the scenes of our pairs stand for (``None`` where it has none)."""
-    scenes = {k[0] for k, _, _ in _pairs(runs, a, b)}
-    columns = [c for sc in scenes if (c := paper_column(table, sc))]
-    return PAPER_TABLES[table].difference(*labels, metric, columns)
-
-
-def _against_paper(d: MeanCI | None, runs: Sequence[Run], table: str, labels: tuple[str, str],
-                   a: Callable[[Run], bool], b: Callable[[Run], bool], metric: str
-                   ) -> tuple[float | None, int | None]:
-    """The paper's difference for a comparison (:func:`paper_difference`) and the pairs
-    that would resolve it at the spread of ``d``."""
-    paper = paper_difference(runs, table, labels, a, b, metric)
-    return paper, (pairs_to_resolve(d, paper) if d is not None and paper is not None else None)
-
-
 def _beside_paper(f: Finding, runs: Sequence[Run], table: str, labels: tuple[str, str],
                   a: Callable[[Run], bool], b: Callable[[Run], bool]) -> Finding:
-    """``f`` with the paper's difference for its comparison and the pairs that would
-    resolve it at our spread."""
-    f.paper, f.needed = _against_paper(f.diff, runs, table, labels, a, b, f.metric.lower())
+    """``f`` with the paper's difference for its comparison, the pairs that would
+    resolve it at our spread and a note on any repeated paper cell behind it."""
+    f.paper, f.needed, note = against_paper(f.diff, runs, table, labels, a, b,
+                                            f.metric.lower())
+    f.note = "; ".join(x for x in (f.note, note) if x)
     return f
 
 
@@ -303,6 +258,8 @@ class RowDifference:
     paper: float | None = None
     #: pairs that would resolve ``paper`` at the spread of ``all_scenes``
     needed: int | None = None
+    #: a repeated paper cell behind ``paper``, and the paper's difference without it
+    note: str = ""
 
 
 def row_differences(runs: Sequence[Run], table: str = "table3",
@@ -313,9 +270,9 @@ def row_differences(runs: Sequence[Run], table: str = "table3",
     moving = {lab: d for lab, d, _ in _against_each(_moving(t), table, full)}
     out = []
     for lab, d, lost in _against_each(t, table, full):
-        paper, needed = _against_paper(d, t, table, (full, lab), _row(table, full),
-                                       _row(table, lab), "psnr")
-        out.append(RowDifference(lab, d, moving.get(lab), lost, paper, needed))
+        paper, needed, note = against_paper(d, t, table, (full, lab), _row(table, full),
+                                            _row(table, lab), "psnr")
+        out.append(RowDifference(lab, d, moving.get(lab), lost, paper, needed, note))
     return sorted(out, key=lambda x: x.all_scenes.mean if x.all_scenes else float("inf"))
 
 
@@ -332,7 +289,7 @@ def row_differences_markdown(diffs: Sequence[RowDifference]) -> str:
     if not diffs:
         return ""
     rows = [[d.row, *cell(d.all_scenes), *cell(d.moving), str(d.lost), fmt(d.paper, 2),
-             _inside(d.paper, d.all_scenes), _needed_text(d.needed, d.all_scenes)]
+             inside(d.paper, d.all_scenes), needed_text(d.needed, d.all_scenes)]
             for d in diffs]
     header = ["row", "Full − row, all scenes (dB)", "n", "Full − row, scenes with motion (dB)",
               "n", "runs not scored", "paper, same scenes (dB)", "paper inside ours",
@@ -343,27 +300,13 @@ def row_differences_markdown(diffs: Sequence[RowDifference]) -> str:
               "- paper: its Full − row averaged over the columns our scenes stand for; pairs to "
               "resolve it: (scene, seed) pairs that, at the spread of ours (all scenes), give a "
               "95 % interval narrower than the paper's difference (\"met\": n has them); paper "
-              "inside ours **no**: our runs rule the paper's difference out at this scale.\n")
+              "inside ours **no**: our runs rule the paper's difference out at this scale.\n"
+            + "".join(f"- {d.row}: {d.note}.\n" for d in diffs if d.note))
 
 
 def _gain(r: Run) -> float | None:
     p, e = r.metric("psnr"), r.metric("psnr_background")
     return None if p is None or e is None else p - e
-
-
-def _inside(paper: float | None, d: MeanCI | None) -> str:
-    """Whether the paper's difference lies in our 95 % interval: "yes", "**no**" (our
-    runs rule it out at this scale) or "—"."""
-    if paper is None or d is None or d.half is None:
-        return "—"
-    return "yes" if d.low <= paper <= d.high else "**no**"
-
-
-def _needed_text(needed: int | None, d: MeanCI | None) -> str:
-    """Pairs needed, for a table: "—" where it cannot be said, "met" where ``d`` has them."""
-    if needed is None:
-        return "—"
-    return "met" if d is not None and d.n >= needed else str(needed)
 
 
 def _lost(n: int) -> str:
@@ -377,8 +320,8 @@ def findings_markdown(findings: Sequence[Finding]) -> str:
         diff = (f"{fmt(f.diff.mean, 3)} ± {fmt(f.diff.half, 3)}" if f.diff and f.diff.half
                 else fmt(f.diff.mean, 3) if f.diff else "—")
         rows.append([f.claim, f.verdict, f.metric, diff, str(f.diff.n if f.diff else 0),
-                     fmt(f.paper, 3), _inside(f.paper, f.diff),
-                     _needed_text(f.needed, f.diff), f.cells, f.note])
+                     fmt(f.paper, 3), inside(f.paper, f.diff),
+                     needed_text(f.needed, f.diff), f.cells, f.note])
     header = ["claim (supplementary)", "verdict", "metric", "paired difference ± 95 %", "n",
               "paper", "paper inside ours", "pairs to resolve the paper's", "cells", "note"]
     return ("## The paper's claims at this scale\n\n" + markdown_table(header, rows) + "\n\n"

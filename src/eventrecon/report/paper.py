@@ -43,16 +43,39 @@ class PaperTable:
         """The paper's metric tuple for a cell, or ``None`` if the paper has none."""
         return self.values.get((row, column))
 
-    def difference(self, a: str, b: str, metric: str, columns: Sequence[str]) -> float | None:
+    def repeated(self, row: str, column: str) -> str | None:
+        """Another row whose cell in ``column`` equals ``row``'s in every metric, or
+        ``None``. Three metrics printed to three decimals do not agree by chance, so such
+        a cell is most likely a copy in the paper's table. Tables of one metric and the
+        average column are not checked.
+
+        >>> PAPER_TABLES["table3"].repeated("w/o L_event", "Blender")
+        'w/o clipping'
+        """
+        v = self.value(row, column)
+        if v is None or len(self.metrics) < 2 or column == self.average_column:
+            return None
+        return next((r for r in self.rows if r != row and self.value(r, column) == v), None)
+
+    def difference(self, a: str, b: str, metric: str, columns: Sequence[str],
+                   skip_repeated: bool = False) -> float | None:
         """The paper's ``a − b`` in ``metric``, averaged over ``columns`` (each column
         once); ``None`` without columns or where the paper lacks a cell or the metric.
+        ``skip_repeated`` leaves out the columns where ``a``'s or ``b``'s cell repeats
+        another row's (:meth:`repeated`).
 
         >>> round(PAPER_TABLES["table5"].difference("100", "0.5", "psnr", ["Sword"]), 3)
         0.378
+        >>> t3, cols = PAPER_TABLES["table3"], ["Blender", "Dress", "Spheres", "Lego"]
+        >>> [round(t3.difference("Full Model", "w/o L_event", "psnr", cols, s), 3)
+        ...  for s in (False, True)]
+        [3.014, 1.527]
         """
         if metric not in self.metrics:
             return None
         k, cols = self.metrics.index(metric), sorted(set(columns))
+        if skip_repeated:
+            cols = [c for c in cols if not (self.repeated(a, c) or self.repeated(b, c))]
         cells = [(self.value(a, c), self.value(b, c)) for c in cols]
         if not cells or any(va is None or vb is None for va, vb in cells):
             return None
