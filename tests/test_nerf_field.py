@@ -78,6 +78,8 @@ def test_annealing_window_turns_bands_on_in_order() -> None:
         assert 0.0 < band_window(4, 100 * k + 30, 400)[k] < 1.0
     enc.set_progress(10_000)
     assert torch.allclose(enc(x), full, atol=1e-6)
+    # the window is a checkpointed buffer
+    assert "window" in enc.state_dict()
 
 
 def test_a_window_of_ones_is_skipped_exactly_and_a_loaded_window_is_applied() -> None:
@@ -86,18 +88,26 @@ def test_a_window_of_ones_is_skipped_exactly_and_a_loaded_window_is_applied() ->
     x = torch.rand(9, 3) * 2 - 1
     enc = PositionalEncoding(3, 4, anneal_steps=400)
     enc.set_progress(10_000)
+    assert enc._all_on                           # the skip is taken
     xb = x[:, None, :] * enc.freqs[:, None]
     feats = torch.cat([torch.sin(xb), torch.cos(xb)], dim=-1) * enc.window[:, None]
     assert torch.equal(enc(x), torch.cat([x, feats.reshape(9, -1)], dim=-1))
     half = PositionalEncoding(3, 4, anneal_steps=400)
     half.set_progress(150)                       # window (1, 0.5, 0, 0)
     enc.load_state_dict(half.state_dict())
+    assert not enc._all_on
     assert torch.equal(enc(x), half(x)) and torch.equal(enc(x)[:, 15:], torch.zeros(9, 12))
     none = PositionalEncoding(3, 4, anneal_steps=0)
     half.load_state_dict(none.state_dict())      # all on, loaded: no longer scaled
-    assert torch.equal(half(x), none(x))
-    # the window is a checkpointed buffer
-    assert "window" in enc.state_dict()
+    assert half._all_on and torch.equal(half(x), none(x))
+    # through the field, as a checkpoint is loaded: each encoding's hook runs
+    on, annealing = (NeRFField(depth=1, width=8, pos_bands=3, time_bands=2, anneal_steps=a)
+                     for a in (0, 400))
+    annealing.set_progress(100)
+    on.load_state_dict(annealing.state_dict())
+    assert not on.pos_enc._all_on and not on.time_enc._all_on
+    xyz, t = torch.rand(9, 3), torch.rand(9, 1)
+    assert torch.equal(on.encode(xyz, t), annealing.encode(xyz, t))
 
 
 def test_band_annealing_callback_sets_every_encoding() -> None:
@@ -170,21 +180,27 @@ def _explicit_forward(f: NeRFField, xyz: torch.Tensor, t: torch.Tensor):
     return sigma, torch.sigmoid(f.colour_out(relu2(f.colour_hidden(f.colour_remap(h)))))
 
 
+@pytest.mark.parametrize("autocast", [None, torch.bfloat16, torch.float16])
 @pytest.mark.parametrize("sizes", [dict(depth=4, width=64, skip=-1, remap_width=64,
                                         colour_width=32),
                                    dict(depth=8, width=32, skip=4, remap_width=32,
                                         colour_width=16)])
-def test_the_folded_factor_two_gives_the_explicit_relu2_bit_for_bit(sizes) -> None:
-    """``2·ReLU`` folded into the next layer's ``addmm`` (``alpha = 2``): values and
-    gradients identical to the explicit multiplication, with and without the skip."""
+def test_the_folded_factor_two_gives_the_explicit_relu2_bit_for_bit(sizes, autocast) -> None:
+    """``2·ReLU`` folded into the next layer's weight (``(2W) r``): values and gradients
+    identical to the explicit multiplication, with and without the skip, in fp32 and
+    under CPU autocast (where the weight is cast before it is doubled)."""
     torch.manual_seed(3)
     f = NeRFField(**sizes, anneal_steps=0)
     xyz, t = torch.rand(777, 3) * 2 - 1, torch.rand(777, 1)
+    scale = 1024.0 if autocast is torch.float16 else 1.0   # as GradScaler: no fp16 subnormals
     results = []
     for forward in (f.forward, lambda a, b: _explicit_forward(f, a, b)):
         f.zero_grad()
-        sigma, rgb = forward(xyz, t)
-        (sigma.square().sum() + (rgb * torch.arange(3.0)).sum()).backward()
+        with torch.autocast("cpu", dtype=autocast or torch.bfloat16, enabled=bool(autocast)):
+            sigma, rgb = forward(xyz, t)
+        assert sigma.dtype == (torch.float32 if autocast is None else sigma.dtype)
+        loss = sigma.float().square().sum() + (rgb.float() * torch.arange(3.0)).sum()
+        (loss * scale).backward()
         results.append([sigma.detach(), rgb.detach(), *(p.grad.clone() for p in f.parameters())])
     assert len(results[0]) == 2 + len(list(f.parameters()))
     for a, b in zip(*results):

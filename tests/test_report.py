@@ -555,7 +555,7 @@ def test_a_paper_cell_that_repeats_another_rows_is_named_with_the_difference_wit
                   for c in ("Blender", "Spheres")) / 2
     assert event.paper == pytest.approx(printed) and printed == pytest.approx(4.7465)
     spheres_only = 29.765 - 27.744
-    assert "Blender `w/o L_event` = `w/o clipping`" in event.note
+    assert "(Blender `w/o L_event` = `w/o clipping`)" in event.note
     assert f"difference is {spheres_only:.2f} (inside ours: no)" in event.note
     diffs = {d.row: d for d in row_differences(runs)}
     assert diffs["NGP"].note == "" and "without it" in diffs["w/o L_event"].note

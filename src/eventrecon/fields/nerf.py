@@ -31,13 +31,14 @@ The factor 2 of ``2·ReLU`` is not applied as a multiplication over the activati
 the layer after it multiplies its weight instead (``W (2 r) + b = (2W) r + b``, a
 product over the ``[out, in]`` weight, not the ``[N, in]`` activations). Scaling by a
 power of two is exact in floating point, so outputs and gradients are bit for bit those
-of the explicit ``2·ReLU`` (``tests/test_nerf_field.py``), and a full-size pass over the
-activations goes away each way. Folding the factor into ``addmm``'s ``alpha`` instead
-(the form before) saves the forward pass only: autograd's backward of ``addmm`` scales
-the ``[N, in]`` input gradient by ``alpha`` in a pass of its own, five per step in the
-4×64 field (~10 % of its profiled time; docs/results "Session 30"). The linear layers
-are therefore applied through their parameters, not called as modules: hooks registered
-on them do not run.
+of the explicit ``2·ReLU``, in fp32 and under bf16 or fp16 autocast
+(``tests/test_nerf_field.py``; in fp16 short of its subnormal and overflow ranges), and
+a full-size pass over the activations goes away each way. Folding the factor into
+``addmm``'s ``alpha`` instead (the form before) saves the forward pass only: autograd's
+backward of ``addmm`` scales the ``[N, in]`` input gradient by ``alpha`` in a pass of
+its own, five per step in the 4×64 field (~10 % of its profiled time; docs/results
+"Session 30"). The linear layers are therefore applied through their parameters, not
+called as modules: hooks registered on them do not run.
 """
 
 from __future__ import annotations
@@ -63,8 +64,15 @@ ZEROED_VIEWDIR_FEATURES = 27
 
 def _linear(layer: nn.Linear, h: Tensor, scale: float) -> Tensor:
     """``layer(scale·h)`` for ``h [N, in]``, computed as ``b + h (scale·W)ᵀ`` in one
-    ``addmm`` (``scale`` 1 or 2: exact either way, also in the backward pass)."""
-    weight = layer.weight if scale == 1.0 else layer.weight * scale
+    ``addmm``. Under autocast the weight is cast to the compute dtype before it is
+    scaled, so the product uses ``scale·cast(W)`` as the explicit form would (casting
+    ``scale·W`` instead rounds differently where ``W`` is subnormal in fp16)."""
+    weight = layer.weight
+    if scale != 1.0:
+        device = h.device.type
+        if torch.is_autocast_enabled(device):
+            weight = weight.to(torch.get_autocast_dtype(device))
+        weight = weight * scale
     return torch.addmm(layer.bias, h, weight.t())
 
 

@@ -76,14 +76,18 @@ def against_paper(d: MeanCI | None, runs: Sequence[Run], table: str, labels: tup
     paper = paper_difference(runs, table, labels, a, b, metric)
     needed = pairs_to_resolve(d, paper) if d is not None and paper is not None else None
     t, cols = PAPER_TABLES[table], _paper_columns(runs, table, a, b)
-    copies = [f"{c} `{lab}` = `{other}`" for c in cols for lab in labels
-              if (other := t.repeated(lab, c))]
+    copies = list(dict.fromkeys(           # once per pair of rows, in either order
+        f"{c} " + " = ".join(f"`{x}`" for x in sorted((lab, other)))
+        for c in cols for lab in labels
+        if (other := t.repeated(lab, c))))
     note = ""
     if paper is not None and copies:
         clean = t.difference(*labels, metric, cols, skip_repeated=True)
-        note = (f"the paper repeats a cell in every metric ({'; '.join(copies)}); without "
-                f"it the paper's difference is {fmt(clean, 2)} (inside ours: "
-                f"{inside(clean, d).strip('*')})")
+        it = "it" if len(copies) == 1 else "them"
+        note = (f"the paper repeats a cell in every metric ({'; '.join(copies)}); " + (
+            f"no column is left without {it}" if clean is None else
+            f"without {it} the paper's difference is {fmt(clean, 2 if metric == 'psnr' else 3)}"
+            f" (inside ours: {inside(clean, d).strip('*')})"))
     return paper, needed, note
 
 
