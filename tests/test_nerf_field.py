@@ -198,7 +198,7 @@ def test_the_folded_factor_two_gives_the_explicit_relu2_bit_for_bit(sizes, autoc
         f.zero_grad()
         with torch.autocast("cpu", dtype=autocast or torch.bfloat16, enabled=bool(autocast)):
             sigma, rgb = forward(xyz, t)
-        assert sigma.dtype == (torch.float32 if autocast is None else sigma.dtype)
+        assert sigma.dtype == rgb.dtype == (autocast or torch.float32)   # autocast took hold
         loss = sigma.float().square().sum() + (rgb.float() * torch.arange(3.0)).sum()
         (loss * scale).backward()
         results.append([sigma.detach(), rgb.detach(), *(p.grad.clone() for p in f.parameters())])

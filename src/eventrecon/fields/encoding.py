@@ -78,11 +78,12 @@ class PositionalEncoding(nn.Module):
         self.register_buffer("freqs", 2.0 ** torch.arange(n_bands, dtype=torch.float32),
                              persistent=False)
         self.register_buffer("window", torch.tensor(band_window(n_bands, 0, anneal_steps)))
-        self._all_on = bool((self.window == 1.0).all())   # refreshed on every change
+        self._window_loaded(self, None)           # _all_on, refreshed on every change
         self.register_load_state_dict_post_hook(PositionalEncoding._window_loaded)
 
     @staticmethod
     def _window_loaded(module: PositionalEncoding, _keys: Any) -> None:
+        """Whether every band is fully on (then the window is not multiplied in)."""
         module._all_on = bool((module.window == 1.0).all())
 
     @property

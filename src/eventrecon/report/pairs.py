@@ -73,9 +73,9 @@ def against_paper(d: MeanCI | None, runs: Sequence[Run], table: str, labels: tup
     that would resolve it at the spread of ``d``, and a note where one of the paper's
     cells behind it repeats another row's (:meth:`~.paper.PaperTable.repeated`): which,
     and the paper's difference without those columns."""
-    paper = paper_difference(runs, table, labels, a, b, metric)
-    needed = pairs_to_resolve(d, paper) if d is not None and paper is not None else None
     t, cols = PAPER_TABLES[table], _paper_columns(runs, table, a, b)
+    paper = t.difference(*labels, metric, cols)            # = paper_difference, paired once
+    needed = pairs_to_resolve(d, paper) if d is not None and paper is not None else None
     copies = list(dict.fromkeys(           # once per pair of rows, in either order
         f"{c} " + " = ".join(f"`{x}`" for x in sorted((lab, other)))
         for c in cols for lab in labels
