@@ -583,3 +583,35 @@ def test_full_model_best_waits_for_rows_without_pairs_of_one_version(tmp_path):
     best = {f.claim: f for f in check_findings(runs)}["Full model best on average (Tab. 3)"]
     assert best.verdict == "inconclusive" and best.diff.mean == pytest.approx(1.1)
     assert "1 row(s) without scored pairs of one method version" in best.note
+
+
+def test_sweep_costs_sum_the_current_versions_job_times_and_price_the_older_runs(tmp_path):
+    from eventrecon.records import METHOD_VERSION
+    from eventrecon.report.compute import sweep_costs, sweep_costs_markdown
+    from eventrecon.report.runs import current_runs
+
+    v = {"method_version": METHOD_VERSION}
+    t3 = [_metrics("spheres", seed=0, total_s=120.0, **v),
+          _metrics("lego", seed=0, total_s=300.0, **v),
+          _metrics("dress", seed=0, total_s=600.0, **v),   # median 300 s, sum 1020 s
+          _metrics("blender", seed=0, total_s=90.0),        # version 1: owed at 300 s
+          _metrics("blender", seed=1, total_s=90.0)]
+    t7 = [_metrics("spheres", views=2, seed=0, total_s=200.0),   # only older runs:
+          _metrics("spheres", views=3, seed=0, total_s=400.0)]   # owed at their own median
+    runs = current_runs(collect_runs([_sweep(tmp_path / "a", t3, "table3").parent.parent,
+                                      _sweep(tmp_path / "b", t7, "table7").parent.parent]))
+    c3, c7 = sweep_costs(runs)
+    assert (c3.experiment, c3.runs, c3.median_s, c3.total_s, c3.stale) == (
+        "table3", 3, 300.0, 1020.0, 2)
+    assert c3.wall_s == pytest.approx(510.0) and c3.owed_s == pytest.approx(300.0)
+    assert (c7.runs, c7.total_s, c7.stale) == (0, 0.0, 2) and math.isnan(c7.median_s)
+    assert c7.owed_s == pytest.approx(2 * 300.0 / 2)
+    md = sweep_costs_markdown([c3, c7])
+    assert "| `table3` | 3 | 5.0 | 0.28 | 0.14 | 2 | 0.08 |" in md
+    assert "| `table7` | 0 | — | 0.00 | 0.00 | 2 | 0.08 |" in md
+    assert "| all | 3 |  | 0.28 | 0.14 | 4 | 0.17 |" in md
+    assert sweep_costs_markdown([]) == ""
+    # a record without total_s counts its training time
+    old = _metrics("spheres", seed=0, **v)
+    c = sweep_costs(collect_runs([_sweep(tmp_path / "c", [old], "table3").parent.parent]))[0]
+    assert c.total_s == 100.0

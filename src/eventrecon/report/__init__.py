@@ -8,7 +8,8 @@ ours as mean ± 95 % interval over seeds, Δ; "—" for missing runs, "collapsed
 for runs that are not results), ``accuracy_vs_time.png`` / ``.md`` and ``findings.md``
 (the paper's claims, checked). Modules: :mod:`.paper` (the paper's numbers),
 :mod:`.runs` (collecting run folders), :mod:`.stats` (means, intervals),
-:mod:`.tables`, :mod:`.curves`, :mod:`.findings`, :mod:`.collapses`, :mod:`.format`.
+:mod:`.tables`, :mod:`.curves`, :mod:`.findings`, :mod:`.collapses`, :mod:`.compute`
+(what the sweeps cost), :mod:`.format`.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from eventrecon.report.collapses import collapsed_cells, collapsed_cells_markdown
+from eventrecon.report.compute import sweep_costs, sweep_costs_markdown
 from eventrecon.report.curves import DEFAULT_LEVELS, write_accuracy_vs_time
 from eventrecon.report.findings import (
     check_findings,
@@ -70,7 +72,8 @@ def build_report(
     paths += write_accuracy_vs_time(runs, out, levels, curves_experiment)
     findings = Path(out) / "findings.md"
     sections = [row_differences_markdown(row_differences(runs)),
-                collapsed_cells_markdown(collapsed_cells(runs)), versions_markdown(runs)]
+                collapsed_cells_markdown(collapsed_cells(runs)), versions_markdown(runs),
+                sweep_costs_markdown(sweep_costs(runs))]
     findings.write_text("\n".join([findings_markdown(check_findings(runs)),
                                    *(s for s in sections if s)]))
     return [*paths, findings]
