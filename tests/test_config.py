@@ -156,16 +156,20 @@ def test_davis_size_is_one_override_for_every_scene():
         assert cfg.scene.name == scene
 
 
-def test_rig_noisy_is_rig_lowlight_with_ten_times_the_shot_noise():
-    # rig_noisy restates rig_lowlight's event effects (Hydra replaces lists): they must stay
-    # identical except the shot-noise rate, or the decay comparison would test two changes
+@pytest.mark.parametrize("scene, noise", [
+    ("rig_noisy", {"name": "shot_noise", "rate_hz": 5.0}),
+    ("rig_drift", {"name": "shot_noise", "rate_hz": 20.0, "on_fraction": 0.8}),
+])
+def test_the_decay_scenes_are_rig_lowlight_with_only_the_shot_noise_changed(scene, noise):
+    # the noisier rig scenes restate rig_lowlight's event effects (Hydra replaces lists): they
+    # must stay identical except the shot noise, or the decay comparison would test two changes
     low = OmegaConf.to_container(_compose("scene=rig_lowlight").scene)
-    noisy = OmegaConf.to_container(_compose("scene=rig_noisy").scene)
-    rates = [[e["rate_hz"] for e in s["events"] if e["name"] == "shot_noise"]
-             for s in (low, noisy)]
-    assert rates == [[0.5], [5.0]]
+    noisy = OmegaConf.to_container(_compose(f"scene={scene}").scene)
+    assert [e for e in low["events"] if e["name"] == "shot_noise"] == [
+        {"name": "shot_noise", "rate_hz": 0.5}]
+    assert [e for e in noisy["events"] if e["name"] == "shot_noise"] == [noise]
+    assert noisy.pop("name") == scene
+    low.pop("name")
     for s in (low, noisy):
-        s.pop("name")
-        for e in s["events"]:
-            e.pop("rate_hz", None)
+        s["events"] = [e for e in s["events"] if e["name"] != "shot_noise"]
     assert noisy == low

@@ -45,6 +45,7 @@ __all__ = [
     "eq15_supplementary",
     "eq18_supplementary",
     "simulate_noise_accumulation",
+    "window_noise_moments",
 ]
 
 
@@ -100,6 +101,67 @@ def noise_limits(q_plus: float, q_minus: float, decay: float) -> tuple[float, fl
         raise InputError("noise_theory", "decay", "b in [0, 1) for finite limits", decay)
     mu, s = q_plus - q_minus, q_plus + q_minus
     return mu / (1.0 - decay), (s - mu**2) / (1.0 - decay**2)
+
+
+def _poisson_pgf(lam: float, x: float) -> float:
+    """``E[x^N]`` for ``N ~ Poisson(λ)``: ``exp(−λ(1 − x))``."""
+    return float(np.exp(-lam * (1.0 - x)))
+
+
+def window_noise_moments(lam_before: float, lam_window: float, q_plus: float,
+                         q_minus: float, decay: float = 1.0) -> tuple[float, float]:
+    r"""Mean and second moment of the noise in a *window sum* ``E(t0, t1) = V(t1) − V(t0)``.
+
+    This is what ``L_event`` and ``L_acc`` see (docs/method.md): ``V`` accumulates from the
+    start of the recording, so with ``n₀`` noise events before ``t0`` and ``m`` inside the
+    window,
+
+    .. math::
+       E = \sum_{k=1}^{m} b^{\,m-k} p_k - (1 - b^m)\,Ê_{n_0},
+
+    with mean ``μ(g_m(b) − (1 − bᵐ) g_{n₀}(b))`` and variance
+    ``σ²(g_m(b²) + (1 − bᵐ)² g_{n₀}(b²))`` given the counts. Here the counts are Poisson,
+    ``n₀ ~ P(λ_before)`` and ``m ~ P(λ_window)``, independent (shot noise). The moments are
+    averaged over them in closed form with ``E[x^N] = exp(−λ(1 − x))``.
+
+    Without decay, ``E`` is the window's own sum: mean ``μλ``, second moment
+    ``sλ + μ²λ²``, whatever came before. With decay, the history term removes the drift:
+    once ``V`` has settled (``λ_before ≫ 1/(1 − b)``) the mean tends to 0 for any
+    ``λ_window``. With too few events in and before the window, decay changes nothing.
+
+    Args:
+        lam_before: expected noise events of a pixel before ``t0``.
+        lam_window: expected noise events in ``(t0, t1]``.
+        q_plus, q_minus: ``P(p = +1)``, ``P(p = −1)`` of a noise event.
+        decay: ``b ∈ [0, 1]``.
+
+    Returns:
+        ``(E[E], E[E²])``: the mean and mean square of the window sum, in events.
+
+    >>> [round(v, 6) for v in window_noise_moments(3.0, 2.0, 0.5, 0.5)]
+    [0.0, 2.0]
+    """
+    _check_q(q_plus, q_minus)
+    if not 0.0 <= decay <= 1.0:
+        raise InputError("noise_theory", "decay", "b in [0, 1]", decay)
+    if lam_before < 0 or lam_window < 0:
+        raise InputError("noise_theory", "lam_before/lam_window", "expected counts >= 0",
+                         f"{lam_before}/{lam_window}")
+    mu, s = q_plus - q_minus, q_plus + q_minus
+    var_p = s - mu**2
+    b = float(decay)
+    if b == 1.0:
+        return mu * lam_window, s * lam_window + mu**2 * lam_window**2
+    p0, p1 = (lambda x: _poisson_pgf(lam_before, x)), (lambda x: _poisson_pgf(lam_window, x))
+    g_m, g_m2 = (1 - p1(b)) / (1 - b), (1 - p1(b * b)) / (1 - b * b)        # E g_m(b), E g_m(b²)
+    g_0, g_02 = (1 - p0(b)) / (1 - b), (1 - p0(b * b)) / (1 - b * b)
+    cut = 1 - p1(b)                                                          # E(1 − bᵐ)
+    cut_sq = 1 - 2 * p1(b) + p1(b * b)                                       # E(1 − bᵐ)²
+    g_0_sq = (1 - 2 * p0(b) + p0(b * b)) / (1 - b) ** 2                      # E g_{n₀}(b)²
+    mean = mu * (g_m - cut * g_0)
+    variance_part = var_p * (g_m2 + cut_sq * g_02)
+    mean_sq_part = mu**2 * (cut_sq / (1 - b) ** 2 - 2 * cut_sq / (1 - b) * g_0 + cut_sq * g_0_sq)
+    return mean, variance_part + mean_sq_part
 
 
 def eq15_supplementary(n: np.ndarray | int, q_plus: float, q_minus: float) -> np.ndarray:
