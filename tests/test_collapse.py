@@ -29,6 +29,19 @@ def test_rule_needs_the_whole_final_stretch_below_the_floor():
     assert "within 0.05 dB" in collapse_reason([log], 21.04, 21.0, rule)
 
 
+def test_the_psnr_rule_also_asks_the_subject_when_the_run_has_one():
+    rule, live = CollapseRule(), [[(25, 0.2)]]
+    # rig_drift full seed 0: full frame 0.004 dB from the empty field, subject +1.21 dB
+    assert collapse_reason(live, 22.067, 22.063, rule, 16.88, 15.67) is None
+    # the subject at the empty field too: an empty render
+    assert "within 0.05 dB" in collapse_reason(live, 22.067, 22.063, rule, 15.70, 15.67)
+    # no subject figures (no masks): the full frame decides alone, as before
+    assert "within 0.05 dB" in collapse_reason(live, 22.067, 22.063, rule, None, 15.67)
+    assert "within 0.05 dB" in collapse_reason(live, 22.067, 22.063, rule, float("nan"), 15.67)
+    # a subject at the empty field alone is no collapse when the full frame is not
+    assert collapse_reason(live, 23.0, 22.063, rule, 15.70, 15.67) is None
+
+
 def test_a_forced_collapse_is_reported_as_collapsed(data_dir: Path, tmp_path: Path):
     """A field whose density is driven to zero (softplus(raw − 30)) renders the empty scene:
     status collapsed in metrics.json, "collapsed" in the tables, never a score."""

@@ -9,7 +9,10 @@ signs, either one enough (:func:`collapse_reason`):
   times; logged every ``trainer.log_every`` steps) stays below ``opacity_floor`` over
   the last ``window`` share of the logged steps of some segment;
 - the held-out PSNR is within ``psnr_margin`` dB of the empty field's on the same frames
-  (``psnr_background``).
+  (``psnr_background``), and so is the PSNR on the subject's region where the run has
+  one (``psnr_subject`` against ``psnr_background_subject``): a run can trade a better
+  subject for a worse background and land on the empty field's full-frame PSNR by chance
+  (`rig_drift` full, seed 0: 0.004 dB from it with the subject +1.21 dB better).
 
 A collapsed run is written with ``status: collapsed`` and its reason; the tables and the
 accuracy-vs-time figure show "collapsed" instead of its numbers.
@@ -59,14 +62,25 @@ def opacity_collapsed(log: Sequence[tuple[int, float]], rule: CollapseRule) -> b
     return all(o < rule.opacity_floor for _, o in list(log)[-k:])
 
 
+def _near(a: float | None, b: float | None, margin: float) -> bool | None:
+    """Whether two finite PSNRs lie within ``margin``; ``None`` when either is missing."""
+    if a is None or b is None or not (math.isfinite(a) and math.isfinite(b)):
+        return None
+    return abs(a - b) <= margin
+
+
 def collapse_reason(opacity_logs: Sequence[Sequence[tuple[int, float]]], psnr: float | None,
-                    psnr_background: float | None, rule: CollapseRule) -> str | None:
+                    psnr_background: float | None, rule: CollapseRule,
+                    psnr_subject: float | None = None,
+                    psnr_background_subject: float | None = None) -> str | None:
     """Why a run counts as collapsed, or ``None``.
 
     Args:
         opacity_logs: per segment, the logged ``(step, mean opacity)`` of training.
         psnr, psnr_background: held-out PSNR of the run and of the empty field (or None).
         rule: the thresholds.
+        psnr_subject, psnr_background_subject: the same on the subject's region (or None:
+            the full frame decides alone).
 
     >>> collapse_reason([[(25, 0.0), (50, 0.0)]], 21.3, 21.3, CollapseRule())
     'segment 0: mean opacity below 0.001 over the last 25% of training'
@@ -74,13 +88,15 @@ def collapse_reason(opacity_logs: Sequence[Sequence[tuple[int, float]]], psnr: f
     'held-out PSNR 21.32 dB within 0.05 dB of the empty field (21.30 dB)'
     >>> collapse_reason([[(25, 0.2)]], 24.0, 21.3, CollapseRule()) is None
     True
+    >>> collapse_reason([[(25, 0.2)]], 22.07, 22.06, CollapseRule(), 16.88, 15.67) is None
+    True
     """
     for k, log in enumerate(opacity_logs):
         if opacity_collapsed(log, rule):
             return (f"segment {k}: mean opacity below {rule.opacity_floor:g} over the last "
                     f"{rule.window:.0%} of training")
-    if psnr is not None and psnr_background is not None and math.isfinite(psnr) \
-            and abs(psnr - psnr_background) <= rule.psnr_margin:
+    subject_near = _near(psnr_subject, psnr_background_subject, rule.psnr_margin)
+    if _near(psnr, psnr_background, rule.psnr_margin) and subject_near is not False:
         return (f"held-out PSNR {psnr:.2f} dB within {rule.psnr_margin:g} dB of the empty "
                 f"field ({psnr_background:.2f} dB)")
     return None

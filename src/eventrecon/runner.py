@@ -272,7 +272,9 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
                                            device, window))
         reason = collapse_reason([d.get("opacity_log", []) for d in dones], metrics.get("psnr"),
                                  metrics.get("psnr_background"),
-                                 CollapseRule(**cfg.trainer.get("collapse", {})))
+                                 CollapseRule(**cfg.trainer.get("collapse", {})),
+                                 metrics.get("psnr_subject"),
+                                 metrics.get("psnr_background_subject"))
         if reason is not None:
             metrics.update(status="collapsed", collapse_reason=reason)
             log.warning("run collapsed to the empty field: %s", reason)
