@@ -18,10 +18,10 @@ import torch
 
 from eventrecon.data.sampling import sample_window
 from eventrecon.data.types import SplitData
+from eventrecon.data.window_stats import window_stats
 from eventrecon.errors import InputError
 from eventrecon.events.noise_theory import window_noise_moments
 from eventrecon.events.stream import EventStream
-from eventrecon.events.window_stats import window_stats
 
 
 def _mc_window_sums(lam0: float, lam1: float, qp: float, b: float, n: int,

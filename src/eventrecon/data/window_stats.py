@@ -14,7 +14,7 @@ This module draws training windows exactly as the batcher does
 pixel with ``b = 1`` and with the scene's decay, and reports per region the mean, the RMS
 and the RMS of the change decay makes::
 
-    python -m eventrecon.events.window_stats data/rig_noisy-171c56ba9b --segment 90 210
+    python -m eventrecon.data.window_stats data/rig_noisy-171c56ba9b --segment 90 210
 """
 
 from __future__ import annotations
@@ -133,7 +133,7 @@ def _table(stats: WindowStats) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """CLI: print the table for a dataset folder (``<scene>/train`` is read)."""
-    ap = argparse.ArgumentParser(prog="python -m eventrecon.events.window_stats",
+    ap = argparse.ArgumentParser(prog="python -m eventrecon.data.window_stats",
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("dataset", type=Path, help="a dataset folder holding train/")
     ap.add_argument("--segment", type=float, nargs=2, metavar=("START", "END"),
