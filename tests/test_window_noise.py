@@ -123,3 +123,11 @@ def test_window_stats_names_a_split_without_events():
     split.events = None
     with pytest.raises(InputError, match="events"):
         window_stats(split, (0.0, 100.0), 0.93)
+
+
+def test_window_stats_names_a_bad_segment_or_window_count():
+    split = _noise_split(0.05, 0.5, 1, 4, 4, 100.0, 0)
+    with pytest.raises(InputError, match="segment"):
+        window_stats(split, (50.0, 50.0), 0.93)
+    with pytest.raises(InputError, match="windows"):
+        window_stats(split, (0.0, 100.0), 0.93, windows=0)

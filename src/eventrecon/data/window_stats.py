@@ -63,14 +63,24 @@ class WindowStats:
     subject: RegionStats | None   # None without masks
 
 
-def _region(plain: list[np.ndarray], decayed: list[np.ndarray]) -> RegionStats:
-    e1, eb = np.concatenate(plain), np.concatenate(decayed)
-    if e1.size == 0:
-        nan = float("nan")
-        return RegionStats(0, nan, nan, nan, nan, nan)
-    return RegionStats(int(e1.size), float(e1.mean()), float(np.sqrt(np.mean(e1**2))),
-                       float(eb.mean()), float(np.sqrt(np.mean(eb**2))),
-                       float(np.sqrt(np.mean((eb - e1) ** 2))))
+class _Sums:
+    """Running sums of one region's window sums (constant memory at any sensor size)."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.s = np.zeros(5)   # Σ E₁, Σ E₁², Σ E_b, Σ E_b², Σ (E_b − E₁)²
+
+    def add(self, e1: np.ndarray, eb: np.ndarray) -> None:
+        self.n += e1.size
+        self.s += [e1.sum(), (e1 * e1).sum(), eb.sum(), (eb * eb).sum(), ((eb - e1) ** 2).sum()]
+
+    def stats(self) -> RegionStats:
+        if self.n == 0:
+            nan = float("nan")
+            return RegionStats(0, nan, nan, nan, nan, nan)
+        m = self.s / self.n
+        return RegionStats(self.n, float(m[0]), float(np.sqrt(m[1])), float(m[2]),
+                           float(np.sqrt(m[3])), float(np.sqrt(m[4])))
 
 
 def window_stats(split: SplitData, segment: tuple[float, float], decay: float,
@@ -79,45 +89,45 @@ def window_stats(split: SplitData, segment: tuple[float, float], decay: float,
 
     Each window is ``(t0, t1)`` of :func:`~eventrecon.data.sampling.sample_window`, mapped
     to ``segment``; ``V`` accumulates from the start of the recording, as in training. A
-    pixel is *subject* where the mask of the frame nearest ``t1`` is set.
+    pixel is *subject* where the mask of the frame nearest ``t1`` is set. Every pixel of
+    every view counts once per window (``[V·H·W]`` values per window and region split).
 
     Args:
-        split: a split with events (``SplitData.events``), masks optional.
+        split: a split with events (``SplitData.events``), masks ``[F, V, H, W]`` optional.
         segment: ``(start, end)`` in time units.
         decay: the decay ``b`` to compare with ``b = 1``.
         windows: how many windows to draw.
         seed: the window generator's seed.
 
     Raises:
-        InputError: without events, or with an empty segment.
+        InputError: without events, with an empty segment or no windows.
     """
     if not split.events:
         raise InputError(split.root, "events/", "a split with events", "none")
     start, end = float(segment[0]), float(segment[1])
     if not end > start:
         raise InputError(split.root, "segment", "start < end", f"[{start}, {end}]")
+    if windows < 1:
+        raise InputError(split.root, "windows", "at least one window", windows)
     h, w = split.cameras.height, split.cameras.width
     acc = {b: DecayedEvents.from_streams(split.events, h, w, b) for b in (1.0, float(decay))}
     gen = torch.Generator().manual_seed(seed)
     masks = split.masks
-    bg1, bgb, s1, sb, lengths = [], [], [], [], []
+    background, subject, length = _Sums(), _Sums(), 0.0
     for _ in range(windows):
         a, c = sample_window(gen)
         t0, t1 = start + a * (end - start), start + c * (end - start)
-        lengths.append(t1 - t0)
+        length += t1 - t0
         e1 = acc[1.0].window_all(t0, t1).reshape(-1).numpy()
         eb = acc[float(decay)].window_all(t0, t1).reshape(-1).numpy()
         if masks is None:
-            bg1.append(e1)
-            bgb.append(eb)
+            background.add(e1, eb)
             continue
         m = masks[int(np.argmin(np.abs(split.frame_times - t1)))].reshape(-1)
-        bg1.append(e1[~m])
-        bgb.append(eb[~m])
-        s1.append(e1[m])
-        sb.append(eb[m])
-    return WindowStats(float(decay), windows, float(np.mean(lengths)), _region(bg1, bgb),
-                       _region(s1, sb) if masks is not None else None)
+        background.add(e1[~m], eb[~m])
+        subject.add(e1[m], eb[m])
+    return WindowStats(float(decay), windows, length / windows, background.stats(),
+                       subject.stats() if masks is not None else None)
 
 
 def _table(stats: WindowStats) -> str:
