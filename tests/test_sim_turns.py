@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from eventrecon.sim import compiled_core
 from eventrecon.sim.ideal import CoreSettings, SignalSetup, crossings, frame_events, run_core
 from eventrecon.sim.merge import CHUNK, merge_by_time, time_order
 
@@ -175,7 +176,7 @@ def _graze(g, t):
 
 
 @pytest.mark.parametrize("case", ["grating 0.5", "grating 0.2", "jumps", "graze", "on≠off"])
-def test_compiled_engine_gives_the_numpy_engines_events_bit_for_bit(case):
+def test_compiled_engine_gives_the_numpy_engines_events_bit_for_bit(case, monkeypatch):
     pytest.importorskip("numba")
     gr = SmallGrating()
     P = gr.W * gr.H
@@ -193,13 +194,15 @@ def test_compiled_engine_gives_the_numpy_engines_events_bit_for_bit(case):
     s.engine = "numpy"
     ref = run_core(sig, np.arange(P), setup, s)
     s.engine = "compiled"
-    res = run_core(sig, np.arange(P), setup, s)
+    for drop in (compiled_core.DROP, 0.0, 1.0):       # finished pixels kept to the end, or
+        monkeypatch.setattr(compiled_core, "DROP", drop)   # dropped at once (numpy's way)
+        res = run_core(sig, np.arange(P), setup, s)
+        for f in "gtp":                               # same events, same order, same bits
+            np.testing.assert_array_equal(getattr(res, f), getattr(ref, f))
+        assert (res.iterations, res.n_forced, res.extra) == (ref.iterations, ref.n_forced,
+                                                              ref.extra)
     if case != "graze":                               # more than the first event chunk
         assert ref.t.size > 4 * P + 1024
-    for f in "gtp":                                   # same events, same order, same bits
-        np.testing.assert_array_equal(getattr(res, f), getattr(ref, f))
-    assert (res.iterations, res.n_forced, res.extra) == (ref.iterations, ref.n_forced,
-                                                          ref.extra)
     if case == "jumps":
         assert res.n_forced > 0 and np.bincount(res.g).max() > 100
     if case == "graze":                               # each peak found by refinement

@@ -48,23 +48,31 @@ from eventrecon.sim.paths import refine_turns
 
 __all__ = ["AVAILABLE", "run_compiled"]
 
+#: Finished pixels are dropped from the state once fewer than this share still runs; until
+#: then they only skip their turn in :func:`_plan` and :func:`_step`.
+DROP = 0.75
+
 
 @njit
-def _plan(t_last, h, grow, m, M, max_step):
+def _plan(pix, t_last, h, grow, m, M, max_step):
     """Sample times of each pixel's next block, flattened.
 
     Pixel ``i`` samples ``t_i + h_i·(1, 2, …)``, or after an easy block the partial sums
     of ``min(2^k·h_i, max_step)``, at most ``m_i`` of them; a time from ``1 − 1e-12`` on
-    is 1 and ends the block. Returns ``(T [Σ n], start [N + 1], n_valid [N], odd [N])``:
-    pixel ``i`` samples ``T[start[i]:start[i+1]]``; ``odd`` marks unequal steps."""
+    is 1 and ends the block. A pixel that has reached ``t = 1`` samples nothing. Returns
+    ``(G [Σ n], T [Σ n], start [N + 1], n_valid [N], odd [N])``: pixel ``i`` samples
+    ``T[start[i]:start[i+1]]`` (``G`` its global id ``pix[i]`` there); ``odd`` marks
+    unequal steps."""
     N = h.size
     n_valid = np.empty(N, np.int64)
     odd = np.empty(N, np.bool_)
     start = np.zeros(N + 1, np.int64)
     T = np.empty(N * M)
+    G = np.empty(N * M, np.int64)
     j = 0
     for i in range(N):
-        t0, h0, s, p2, ended, k = t_last[i], h[i], 0.0, 1.0, False, 0
+        t0, h0, s, p2, k = t_last[i], h[i], 0.0, 1.0, 0
+        ended = t0 >= 1.0
         while k < m[i] and not ended:
             if grow[i]:
                 s += min(p2 * h0, max_step)
@@ -74,13 +82,13 @@ def _plan(t_last, h, grow, m, M, max_step):
                 t = t0 + (k + 1.0) * h0
             if t >= 1.0 - 1e-12:
                 t, ended = 1.0, True
-            T[j] = t
+            T[j], G[j] = t, pix[i]
             j += 1
             k += 1
         n_valid[i] = k
         odd[i] = grow[i] or m[i] < M or ended
         start[i + 1] = j
-    return T[:j], start, n_valid, odd
+    return G[:j], T[:j], start, n_valid, odd
 
 
 @njit_inline
@@ -171,6 +179,8 @@ def _step(i0, T, start, n_valid, odd, L, pix, st_t, st_L, h, m, brk, grow, slope
     n_forced = 0
     for i in range(i0, N):
         s0, nv, prev = start[i], n_valid[i], st_L[i, 2]
+        if nv == 0:                              # reached t = 1 (not yet dropped)
+            continue
         var = abs(prev - st_L[i, 1])             # bounds the events of the path
         for k in range(nv):
             D[k] = L[s0 + k] - (prev if k == 0 else L[s0 + k - 1])
@@ -291,8 +301,8 @@ def run_compiled(signal: Callable, pix: np.ndarray, setup, s, stats: dict
 
     while pix.size:
         it += 1
-        T, start, n_valid, odd = _plan(st_t[:, 2], h, grow, m, M, s.max_step)
-        L = signal(np.repeat(pix, n_valid), T)
+        G, T, start, n_valid, odd = _plan(pix, st_t[:, 2], h, grow, m, M, s.max_step)
+        L = signal(G, T)
         stats["n_samples"] += T.size
         i, K = 0, 0
         while True:
@@ -318,7 +328,8 @@ def run_compiled(signal: Callable, pix: np.ndarray, setup, s, stats: dict
                     break
                 ev, n = chunk(n), 0
         running = st_t[:, 2] < 1.0
-        if not running.all():
+        n_run = np.count_nonzero(running)
+        if n_run == 0 or n_run < DROP * running.size:   # finished pixels cost little
             keep = np.flatnonzero(running)
             pix, st_t, st_L, h, m, brk, grow, slope, ref, on, off = (
                 x[keep] for x in (pix, st_t, st_L, h, m, brk, grow, slope, ref, on, off))

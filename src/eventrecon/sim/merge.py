@@ -19,13 +19,15 @@ The result is the permutation ``np.lexsort((g, t))`` gives, element for element.
 
 With numba (:mod:`~eventrecon.sim.jit`) the same order comes from compiled bucket
 sorts instead (:func:`_bucket_order`): a stable counting sort into up to 4096 equal-time
-buckets, each bucket (cache-sized) again into buckets of about 8 events, and those
-ordered by ``(t, g)`` with a stable insertion sort (a stable merge sort where a bucket
-holds more than 48). The bucket index ``⌊(t − lo)·B/(hi − lo)⌋`` is monotone in ``t``,
-so equal stamps share a bucket and the buckets follow in time. Large arrays are touched
-a few times instead of a dozen. The one extra column of the core's events (the polarity,
-``int8``) is carried along by the sorts instead of a 64-bit permutation gathered
-afterwards: 7 bytes less per event to write, and no random-access gather.
+buckets, each bucket (cache-sized) again into buckets of about ``FINE`` events, and the
+bucket then ordered by ``(t, g)`` with one stable insertion pass (a stable merge sort
+first where a fine bucket holds more than 48). The bucket index
+``⌊(t − lo)·B/(hi − lo)⌋`` is monotone in ``t``, so equal stamps share a bucket and the
+buckets follow in time: the insertion pass only moves an event inside its fine bucket.
+Large arrays are touched a few times instead of a dozen. The one extra column of the
+core's events (the polarity, ``int8``) is carried along by the sorts instead of a 64-bit
+permutation gathered afterwards: 7 bytes less per event to write, and no random-access
+gather.
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ __all__ = ["time_order", "merge_by_time"]
 
 #: Chunk size of the coarse pass (events); below ``4·CHUNK`` one chunk is used.
 CHUNK = 1 << 15
+#: Events per fine bucket of the compiled order, on average (:func:`_order_buckets`).
+FINE = 2
 
 
 def _radix32(q: np.ndarray) -> np.ndarray:
@@ -103,14 +107,10 @@ def _place(t, g, q, index, first, lo, scale, B, pos, ts, gs, qs):
 
 
 @njit
-def _order_small(ts, gs, ps, a, e):
-    """``ts, gs, ps[a:e]`` ordered in place by ``(t, g)``, stably."""
-    if e - a > 48:
-        o = np.argsort(gs[a:e], kind="mergesort")
-        o = o[np.argsort(ts[a:e][o], kind="mergesort")]
-        ts[a:e], gs[a:e], ps[a:e] = ts[a:e][o], gs[a:e][o], ps[a:e][o]
-        return
-    for i in range(a + 1, e):                    # insertion sort
+def _insertion(ts, gs, ps, a, e):
+    """Stable insertion sort of ``ts, gs, ps[a:e]`` by ``(t, g)``, in place: linear on a
+    range that is already in order but for short runs (a bucket after its fine pass)."""
+    for i in range(a + 1, e):
         x, y, z = ts[i], gs[i], ps[i]
         j = i
         while j > a and (ts[j - 1] > x or (ts[j - 1] == x and gs[j - 1] > y)):
@@ -120,13 +120,26 @@ def _order_small(ts, gs, ps, a, e):
 
 
 @njit
+def _order_small(ts, gs, ps, a, e):
+    """``ts, gs, ps[a:e]`` ordered in place by ``(t, g)``, stably."""
+    if e - a > 48:
+        o = np.argsort(gs[a:e], kind="mergesort")
+        o = o[np.argsort(ts[a:e][o], kind="mergesort")]
+        ts[a:e], gs[a:e], ps[a:e] = ts[a:e][o], gs[a:e][o], ps[a:e][o]
+        return
+    _insertion(ts, gs, ps, a, e)
+
+
+@njit
 def _order_buckets(ts, gs, ps, start):
     """Order each coarse bucket ``[start[k], start[k+1])`` of ``ts, gs, ps`` in place:
-    again into buckets of about 8 events (in cache), each by :func:`_order_small`."""
+    again into about ``m/FINE`` equal-time buckets (in cache), the few with more than 48
+    events (equal stamps) by a merge sort, then the whole bucket by one insertion pass,
+    which only moves events inside their fine bucket (the fine buckets follow in time)."""
     m_max = 0
     for k in range(start.size - 1):
         m_max = max(m_max, start[k + 1] - start[k])
-    s2 = np.zeros(m_max // 8 + 2, np.int64)
+    s2 = np.zeros(m_max // FINE + 2, np.int64)
     ts2, gs2, ps2 = np.empty(m_max), np.empty(m_max, gs.dtype), np.empty(m_max, ps.dtype)
     for k in range(start.size - 1):
         a, e = start[k], start[k + 1]
@@ -134,7 +147,7 @@ def _order_buckets(ts, gs, ps, start):
         if m < 2:
             continue
         lo, hi = ts[a:e].min(), ts[a:e].max()
-        B, scale = m // 8, (m // 8) / (hi - lo)
+        B, scale = m // FINE, (m // FINE) / (hi - lo)
         if m <= 48 or not hi > lo or not np.isfinite(scale):   # (subnormal spread)
             _order_small(ts, gs, ps, a, e)
             continue
@@ -144,10 +157,11 @@ def _order_buckets(ts, gs, ps, start):
             s2[j + 1] += s2[j]
         pos = s2[:B].copy()
         _place(ts[a:e], gs[a:e], ps[a:e], False, 0, lo, scale, B, pos, ts2, gs2, ps2)
-        ts[a:e], gs[a:e], ps[a:e] = ts2[:m], gs2[:m], ps2[:m]
         for j in range(B):
-            if s2[j + 1] - s2[j] > 1:
-                _order_small(ts, gs, ps, a + s2[j], a + s2[j + 1])
+            if s2[j + 1] - s2[j] > 48:
+                _order_small(ts2, gs2, ps2, s2[j], s2[j + 1])
+        _insertion(ts2, gs2, ps2, 0, m)
+        ts[a:e], gs[a:e], ps[a:e] = ts2[:m], gs2[:m], ps2[:m]
 
 
 def _carried(parts: list[tuple[np.ndarray, ...]]) -> bool:
