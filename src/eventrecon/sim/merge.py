@@ -41,7 +41,7 @@ __all__ = ["time_order", "merge_by_time"]
 #: Chunk size of the coarse pass (events); below ``4·CHUNK`` one chunk is used.
 CHUNK = 1 << 15
 #: Events per fine bucket of the compiled order, on average (:func:`_order_buckets`).
-FINE = 2
+FINE = 1
 
 
 def _radix32(q: np.ndarray) -> np.ndarray:
