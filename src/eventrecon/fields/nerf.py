@@ -37,7 +37,7 @@ a full-size pass over the activations goes away each way. Folding the factor int
 ``addmm``'s ``alpha`` instead (the form before) saves the forward pass only: autograd's
 backward of ``addmm`` scales the ``[N, in]`` input gradient by ``alpha`` in a pass of
 its own, five per step in the 4×64 field (~10 % of its profiled time; measured 1.05× /
-1.07× faster at one / two threads, docs/results "Session 30"). The linear layers are
+1.07× faster at one / two threads, docs/results/history.md, "Session 30"). The linear layers are
 therefore applied through their parameters, not called as modules: hooks registered on
 them do not run.
 """
