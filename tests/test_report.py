@@ -14,6 +14,7 @@ import pytest
 
 from eventrecon.report import build_report, collect_runs
 from eventrecon.report.__main__ import main
+from eventrecon.report.budgets import budget_markdown, psnr_within
 from eventrecon.report.curves import summarize, time_to_level
 from eventrecon.report.paper import PAPER_TABLES
 from eventrecon.report.runs import write_curve, write_run
@@ -213,13 +214,46 @@ def test_accuracy_vs_time_known_curve_and_png(tmp_path):
     w, h = struct.unpack(">II", data[16:24])
     assert w > 300 and h > 200
     md = (out / "accuracy_vs_time.md").read_text()
-    row = next(line for line in md.splitlines() if line.startswith("| nerf"))
+    per_run = md.split("### Per run")[1]
+    row = next(line for line in per_run.splitlines() if line.startswith("| nerf"))
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[3] == "—"  # seed: the fake record has none
     assert cells[4:9] == ["cheap+full", "2.0", "2.0", "5.0", "—"]
     assert cells[9:11] == ["26.00", "25.50"]
     for key in PAPER_TABLES:
         assert (out / f"{key}.md").stat().st_size > 0 and (out / f"{key}.tex").is_file()
+
+
+def test_backbones_at_equal_training_time_pair_the_runs_of_a_scene_and_seed(tmp_path):
+    # nerf and ngp on two scenes x two seeds; ngp is 1 dB ahead at 60 s on every pair and
+    # behind at the end by 0.5 / 1.5 dB; a collapsed hexplane run is counted, not scored
+    sweep = tmp_path / "sweep"
+    k = 0
+    for scene in ("spheres", "lego"):
+        for seed in (0, 1):
+            base = 20.0 + seed + (scene == "lego")
+            for model, at60, end in (("nerf", base, base + 3), ("ngp", base + 1,
+                                                                base + 3 - 0.5 - seed)):
+                write_run(sweep / str(k), _metrics(scene, model=model, psnr=end, seed=seed),
+                          _curve([30.0, 59.0, 61.0], [base - 2, at60, 99.0],
+                                 ["cheap", "full", "cheap"]))
+                k += 1
+    write_run(sweep / str(k), _metrics("spheres", model="hexplane", psnr=None, seed=0,
+                                       status="collapsed"))
+    md = budget_markdown(collect_runs([sweep]), budgets=(10.0, 60.0))
+    rows = _parse_md(md.split("| backbone − nerf")[0])["Per backbone, at equal training time"]
+    assert rows["nerf"]["scored / runs"] == "4 / 4" and rows["hexplane"]["scored / runs"] == "0 / 1"
+    # within 10 s: no evaluation yet; within 60 s: the 59 s row, never the 61 s one
+    assert rows["nerf"]["PSNR within 10 s"] == "—"
+    assert rows["nerf"]["PSNR within 60 s"].startswith("21.00 ± ")
+    assert rows["ngp"]["PSNR within 60 s"].startswith("22.00 ± ")
+    diff = md.split("| backbone − nerf")[1]
+    ngp = next(line for line in diff.splitlines() if line.startswith("| ngp"))
+    cells = [c.strip() for c in ngp.strip("|").split("|")]
+    assert cells[1] == "—" and cells[2] == "**+1.00 ± 0.00** (4)"
+    # end: −0.5 and −1.5 per seed → mean −1.0, t_{0.975,3}·0.577/2 = 0.919
+    assert cells[3] == "**-1.00 ± 0.92** (4)"
+    assert psnr_within(np.array([3.0, 1.0, 2.0]), np.array([30.0, 10.0, np.nan]), 2.5) == 10.0
 
 
 def test_missing_and_malformed_runs(tmp_path, caplog):

@@ -8,7 +8,8 @@ ours as mean ± 95 % interval over seeds, Δ; "—" for missing runs, "collapsed
 for runs that are not results), ``accuracy_vs_time.png`` / ``.md`` and ``findings.md``
 (the paper's claims, checked). Modules: :mod:`.paper` (the paper's numbers),
 :mod:`.runs` (collecting run folders), :mod:`.stats` (means, intervals),
-:mod:`.tables`, :mod:`.curves`, :mod:`.findings`, :mod:`.collapses`, :mod:`.compute`
+:mod:`.tables`, :mod:`.curves` (with :mod:`.budgets`: each backbone at equal
+training time), :mod:`.findings`, :mod:`.collapses`, :mod:`.compute`
 (what the sweeps cost), :mod:`.format`.
 """
 

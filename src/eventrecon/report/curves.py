@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from eventrecon.errors import InputError
+from eventrecon.report.budgets import budget_markdown
 from eventrecon.report.format import DASH, fmt, markdown_table
-from eventrecon.report.runs import MODELS, Run, empty_curve, read_curve
+from eventrecon.report.runs import MODELS, Run, run_curve
 
 log = logging.getLogger(__name__)
 
@@ -56,18 +56,9 @@ class CurveSummary:
     best_psnr: float | None
 
 
-def _curve(run: Run) -> dict[str, np.ndarray]:
-    """The run's curve; a malformed ``curve.csv`` is logged and treated as empty."""
-    try:
-        return read_curve(run.path)
-    except InputError as exc:
-        log.warning("ignored curve: %s", exc)
-        return empty_curve()
-
-
 def summarize(run: Run, levels: Sequence[float] = DEFAULT_LEVELS) -> CurveSummary:
     """Time to each PSNR level and the best logged PSNR of ``run``'s curve (all rows)."""
-    c = _curve(run)
+    c = run_curve(run)
     kinds = sorted(set(c["kind"].tolist()))
     kind = "+".join(kinds) if kinds else "none"
     w, p = c["wall_s"], c["psnr"]
@@ -137,67 +128,68 @@ def accuracy_table(
 
 
 def plot_accuracy_vs_time(runs: Sequence[Run], path: str | Path, loss: str | None = "full") -> Path:
-    """PSNR (and SSIM, LPIPS where logged) against wall-clock seconds; colour = backbone,
-    line style = scene; a line through every evaluation of the metric, markers on the
-    ``full`` ones (the only ones with SSIM and LPIPS).
+    """PSNR (and SSIM, LPIPS where logged) against wall-clock seconds: one column of
+    panels per scene, one row per metric, colour = backbone, one thin line per run (its
+    seeds side by side), markers on the ``full`` evaluations (the only ones with SSIM and
+    LPIPS). The legend names the backbones once.
 
     Only runs with ``loss`` (the backbone comparison) are drawn when there are any;
     ``loss=None`` draws every run. Collapsed and failed runs are not drawn as curves: the
-    figure names them instead ("collapsed: ..."). Seeds of one backbone and scene share a
-    colour and a legend entry. Writes a PNG (Agg backend) and returns its path.
+    figure names them instead ("not drawn — ..."). Writes a PNG (Agg backend) and
+    returns its path.
     """
     import matplotlib
 
     matplotlib.use("Agg", force=True)
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
     from matplotlib.ticker import NullFormatter
 
     chosen = [r for r in runs if loss is None or r.loss == loss] or list(runs)
     not_drawn = [r for r in chosen if not r.ok]
-    chosen = [r for r in chosen if r.ok]
-    curves = [(r, _curve(r)) for r in chosen]
+    curves = [(r, run_curve(r)) for r in chosen if r.ok]
     curves = [(r, c) for r, c in curves if len(c["wall_s"])]
     shown = [(k, lab) for k, lab in _METRICS if any(np.isfinite(c[k]).any() for _, c in curves)]
     shown = shown or list(_METRICS[:1])
-    fig, axes = plt.subplots(1, len(shown), figsize=(5.0 * len(shown), 4.0), squeeze=False)
+    scenes = sorted({r.scene for r, _ in curves}) or ["—"]
+    fig, axes = plt.subplots(len(shown), len(scenes), squeeze=False, sharex=True,
+                             sharey="row", figsize=(2.9 * len(scenes) + 0.6,
+                                                    2.5 * len(shown) + 1.0))
     models = sorted({r.model for r, _ in curves}, key=lambda m: (_model_rank(m), m))
-    scenes = sorted({r.scene for r, _ in curves})
     colours = {m: plt.get_cmap("tab10")(i % 10) for i, m in enumerate(models)}
-    styles = {s: ("-", "--", ":", "-.")[i % 4] for i, s in enumerate(scenes)}
     tmax = max((float(np.nanmax(c["wall_s"])) for _, c in curves), default=1.0)
     positive = [c["wall_s"][c["wall_s"] > 0] for _, c in curves]
     tmin = min((float(p.min()) for p in positive if p.size), default=1.0)
-    for ax, (key, label) in zip(axes[0], shown):
+    for (key, label), row in zip(shown, axes):
         for r, c in curves:
-            name = r.model if len(scenes) == 1 else f"{r.model} / {r.scene}"
-            full = c["kind"] == "full"
-            col, ls = colours[r.model], styles[r.scene]
-            has = np.isfinite(c[key])
-            first = name not in {h.get_label() for h in ax.get_lines()}
-            ax.plot(c["wall_s"][has], c[key][has], ls, color=col, lw=1.3,
-                    label=name if first else "_nolegend_")
-            if (full & has).any():
-                ax.plot(c["wall_s"][full & has], c[key][full & has], "o", color=col, ms=4)
-        ax.set_xlabel("wall-clock time [s]")
-        ax.set_ylabel(label)
+            ax, col = row[scenes.index(r.scene)], colours[r.model]
+            has, full = np.isfinite(c[key]), c["kind"] == "full"
+            ax.plot(c["wall_s"][has], c[key][has], "-", color=col, lw=1.0, alpha=0.7)
+            ax.plot(c["wall_s"][full & has], c[key][full & has], "o", color=col, ms=3)
+        row[0].set_ylabel(label)
+    for scene, ax in zip(scenes, axes[0]):
+        ax.set_title(scene, fontsize=10)
+    for ax in axes.flat:
         if tmax / max(tmin, 1e-9) > 100:
             ax.set_xscale("log")
             ax.xaxis.set_minor_formatter(NullFormatter())  # decades only: no overlapping labels
         ax.grid(alpha=0.3)
+    for ax in axes[-1]:
+        ax.set_xlabel("training time [s]")
     if not curves:
         axes[0][0].text(0.5, 0.5, "no curve.csv found", ha="center", transform=axes[0][0].transAxes)
-    handles, labels = axes[0][0].get_legend_handles_labels()
-    uniq = dict(zip(labels, handles))
-    if uniq:
-        axes[0][0].legend(uniq.values(), uniq.keys(), fontsize=8)
+    if models:
+        fig.legend([Line2D([], [], color=colours[m], marker="o", ms=3) for m in models], models,
+                   loc="upper right", ncol=len(models), fontsize=8, frameon=False)
     if not_drawn:
         names = sorted({f"{r.model}/{r.scene} seed {r.record.get('seed')}: {r.status}"
                         for r in not_drawn})
-        fig.text(0.01, 0.01, "not drawn — " + "; ".join(names[:6])
+        fig.text(0.01, 0.005, "not drawn — " + "; ".join(names[:6])
                  + (f"; +{len(names) - 6} more" if len(names) > 6 else ""), fontsize=7,
                  color="0.3")
-    fig.suptitle("Held-out quality vs wall-clock training time (markers: full evaluations)")
-    fig.tight_layout()
+    fig.suptitle("Held-out quality vs wall-clock training time (markers: full evaluations)",
+                 x=0.01, ha="left", fontsize=10)
+    fig.tight_layout(rect=(0, 0.02, 1, 0.97))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
@@ -219,5 +211,7 @@ def write_accuracy_vs_time(
     title = ("## Accuracy vs wall-clock time\n\n"
              f"Runs: `loss=full` of {', '.join(which) or 'none'} ({len(chosen)} runs).\n\n"
              "![accuracy vs time](accuracy_vs_time.png)\n\n")
-    md.write_text(title + accuracy_table([summarize(r, levels) for r in chosen], levels))
+    budgets = budget_markdown(chosen)
+    md.write_text(title + (budgets + "\n### Per run\n\n" if budgets else "")
+                  + accuracy_table([summarize(r, levels) for r in chosen], levels))
     return [png, md]

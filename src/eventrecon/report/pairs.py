@@ -32,14 +32,16 @@ def _scored(runs: Sequence[Run], pick: Callable[[Run], bool]) -> dict[tuple, Run
 
 
 def paired(runs: Sequence[Run], a: Callable[[Run], bool], b: Callable[[Run], bool],
-           metric: str = "psnr") -> tuple[MeanCI | None, int]:
+           metric: str | Callable[[Run], float | None] = "psnr") -> tuple[MeanCI | None, int]:
     """Mean ± interval of ``metric(a) − metric(b)`` over common (scene, seed) pairs made
     with the same method version (a pair across versions would count the method's change
     as the rows' difference), and the number of runs of either side that were not scored
-    (collapsed or failed)."""
+    (collapsed or failed). ``metric``: a field of ``metrics.json`` or a function of the
+    run (a pair where either side gives ``None`` is left out)."""
+    value = metric if callable(metric) else (lambda r: r.metric(metric))
     lost = sum(1 for r in runs if not r.ok and (a(r) or b(r)))
     diffs = [va - vb for _, ra, rb in _pairs(runs, a, b)
-             if (va := ra.metric(metric)) is not None and (vb := rb.metric(metric)) is not None]
+             if (va := value(ra)) is not None and (vb := value(rb)) is not None]
     return (mean_ci(diffs) if diffs else None), lost
 
 

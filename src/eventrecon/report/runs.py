@@ -237,6 +237,16 @@ def empty_curve() -> dict[str, np.ndarray]:
     return _as_columns({k: [] for k in CURVE_HEADER})
 
 
+def run_curve(run: Run) -> dict[str, np.ndarray]:
+    """``run``'s curve (:func:`read_curve`); a malformed ``curve.csv`` is logged as one
+    warning and read as empty, so that one broken record does not stop a report."""
+    try:
+        return read_curve(run.path)
+    except InputError as exc:
+        log.warning("ignored curve: %s", exc)
+        return empty_curve()
+
+
 def _as_columns(cols: dict[str, list]) -> dict[str, np.ndarray]:
     out = {k: np.asarray(v, dtype=float) for k, v in cols.items() if k != "kind"}
     out["kind"] = np.asarray(cols["kind"], dtype=str)
