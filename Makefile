@@ -6,7 +6,7 @@ PIP    := $(PY) -m pip
 STAMP  := $(VENV)/.installed
 ARGS   ?=
 
-.PHONY: install train test test-all lint tensorboard bench tables clean
+.PHONY: install train test test-all lint tensorboard bench tables clean gpu-kit
 
 install: $(STAMP)
 
@@ -47,3 +47,12 @@ tables: install
 
 clean:
 	rm -rf outputs multirun lightning_logs .pytest_cache
+
+# the wheels a lent GPU machine lacks (its image has torch, lightning, numba, ...), for
+# benchmarks/gpu_session.sh there (device tool, carry [".whl"]); pure Python, any 3.x
+gpu-kit: install
+	mkdir -p .whl
+	$(PIP) download -q --no-deps --only-binary=:all: --python-version 3.12 -d .whl \
+		hydra-core==1.3.8 omegaconf==2.3.1
+	$(PIP) wheel -q --no-deps -w .whl antlr4-python3-runtime==4.9.3
+	ls .whl
