@@ -80,7 +80,8 @@ def budget_markdown(runs: Sequence[Run], budgets: Sequence[float] = DEFAULT_BUDG
     if not models:
         return ""
     values = [*(_within(b) for b in budgets), lambda r: r.metric("psnr")]
-    heads = [f"{b:g} s" for b in budgets] + ["end of training"]
+    heads = [f"{b:g} s" for b in budgets] + ["end of training"]     # the differences
+    totals = [f"PSNR within {h}" for h in heads[:-1]] + ["PSNR, end of training"]
     rows, diffs = [], []
     for m in models:
         mine = [r for r in scored if r.model == m]
@@ -94,9 +95,8 @@ def budget_markdown(runs: Sequence[Run], budgets: Sequence[float] = DEFAULT_BUDG
                                              lambda r: r.model == reference, f)[0], True)
                                 for f in values])
     text = ("### Per backbone, at equal training time\n\n"
-            + markdown_table(["backbone", "scored / runs", "median s/it"]
-                             + [f"PSNR within {h}" if h[0].isdigit() else f"PSNR, {h}"
-                                for h in heads], rows) + "\n")
+            + markdown_table(["backbone", "scored / runs", "median s/it"] + totals, rows)
+            + "\n")
     if diffs:
         text += ("\n" + markdown_table([f"backbone − {reference}"] + heads, diffs) + "\n")
     text += (
