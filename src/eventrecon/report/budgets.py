@@ -27,6 +27,7 @@ True
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -50,10 +51,13 @@ def psnr_within(wall_s: np.ndarray, psnr: np.ndarray, budget: float) -> float | 
     return float(p[hit[-1]]) if hit.size else None
 
 
-def _within(budget: float):
-    """``run → PSNR within budget`` (:func:`psnr_within` on the run's curve)."""
+def _within(budget: float, curves: dict[Path, dict[str, np.ndarray]]):
+    """``run → PSNR within budget`` (:func:`psnr_within` on the run's curve, read once
+    into ``curves`` by path)."""
     def value(run: Run) -> float | None:
-        c = run_curve(run)
+        c = curves.get(run.path)
+        if c is None:
+            c = curves[run.path] = run_curve(run)
         return psnr_within(c["wall_s"], c["psnr"], budget)
     return value
 
@@ -79,7 +83,8 @@ def budget_markdown(runs: Sequence[Run], budgets: Sequence[float] = DEFAULT_BUDG
     models = sorted({r.model for r in runs}, key=lambda m: (order.get(m, len(MODELS)), m))
     if not models:
         return ""
-    values = [*(_within(b) for b in budgets), lambda r: r.metric("psnr")]
+    curves: dict[Path, dict[str, np.ndarray]] = {}      # each curve.csv read once
+    values = [*(_within(b, curves) for b in budgets), lambda r: r.metric("psnr")]
     heads = [f"{b:g} s" for b in budgets] + ["end of training"]     # the differences
     totals = [f"PSNR within {h}" for h in heads[:-1]] + ["PSNR, end of training"]
     rows, diffs = [], []
