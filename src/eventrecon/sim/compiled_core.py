@@ -15,7 +15,8 @@ the signal stays a vectorised numpy call. One iteration is
    may reach a level emits its crossings at once
    (:func:`~eventrecon.sim.compiled_paths.commit_path`); the others wait;
 4. for the waiting pixels, the vertex refinement of
-   :func:`eventrecon.sim.paths.refine_turns` (numpy: they are few), then :func:`_commit_turned`
+   :func:`~eventrecon.sim.compiled_paths.refine_turns` (the rule of
+   :func:`eventrecon.sim.paths.refine_turns`, compiled), then :func:`_commit_turned`
    emits each from its path with the refined points merged in where one gained a
    crossing, from the original path otherwise.
 
@@ -41,10 +42,17 @@ from collections.abc import Callable
 
 import numpy as np
 
-from eventrecon.sim.compiled_paths import clip, commit_path, find_turns, queue_turns, room
+from eventrecon.sim.compiled_paths import (
+    clip,
+    commit_path,
+    find_turns,
+    gather_turns,
+    queue_turns,
+    refine_turns,
+    room,
+)
 from eventrecon.sim.core_settings import STEP_TARGET
-from eventrecon.sim.jit import AVAILABLE, njit, njit_inline
-from eventrecon.sim.paths import refine_turns
+from eventrecon.sim.jit import AVAILABLE, njit, njit_borrowing, njit_inline
 
 __all__ = ["AVAILABLE", "run_compiled"]
 
@@ -157,25 +165,25 @@ def _accept(i, T, s0, nv, odd, D, R, M, bound, min_step, max_step, max_curvature
     return n_acc, (n_rej if forced else 0), new_slope
 
 
-@njit
+@njit_borrowing
 def _step(i0, T, start, n_valid, odd, L, pix, st_t, st_L, h, m, brk, grow, slope, ref, on,
           off, M, threshold, max_log_step, min_step, max_step, max_curvature, turn_tol,
-          Wt, WL, wlen, wdone, tr_i, tr_c, tr_sig, tr_gap, n_turns, bg, bt, bp, n):
+          Wt, WL, wlen, wdone, tr_i, tr_c, tr_sig, tr_gap, n_turns, bg, bt, bp, n, R, D, pt,
+          pL, ct, cv):
     """Accept, choose the next step and commit the pixels ``i0, i0 + 1, …`` (module
     docstring, step 3), their events into ``bg, bt, bp`` from ``n`` on.
 
     A pixel with smooth turns of which one may reach a level is not committed: its path
     goes to ``Wt, WL`` (``[N, M + 3]``; ``wlen``, ``wdone``) and its turns to ``tr_*``
-    from ``n_turns`` on. Stops before a pixel whose events might not fit.
+    from ``n_turns`` on. Stops before a pixel whose events might not fit. ``R, D``
+    (``[M]``), ``pt, pL`` (``[M + 3]``), ``ct [M + 2]`` int64 and ``cv [M + 2, 3]`` are
+    scratch space (:func:`_scratch`).
 
     Returns ``(next pixel, n, n_turns, n_forced)``; all done when the first is ``N``."""
     N = h.size
     bound = max_log_step * threshold
     tol = 0.5 * turn_tol * threshold
     cbound = max_curvature * max_log_step * threshold
-    R, D = np.empty(M), np.empty(M)
-    pt, pL = np.empty(M + 3), np.empty(M + 3)
-    ct, cs = np.empty(M + 2, np.int64), np.empty(M + 2)
     n_forced = 0
     for i in range(i0, N):
         s0, nv, prev = start[i], n_valid[i], st_L[i, 2]
@@ -201,11 +209,12 @@ def _step(i0, T, start, n_valid, odd, L, pix, st_t, st_L, h, m, brk, grow, slope
             pt[3 + k], pL[3 + k] = T[s0 + k], L[s0 + k]
         length = n_acc + 3
         done = 1 if pt[length - 1] >= 1.0 else 0
-        nt = find_turns(pt, pL, length, done, cbound, tol, ct, cs)
-        if nt and queue_turns(i, pt, pL, nt, ct, cs, ref[i], on[i], off[i], tol, tr_i,
+        nt = find_turns(pt, pL, length, done, cbound, tol, ct, cv)
+        if nt and queue_turns(i, pt, pL, nt, ct, cv, ref[i], on[i], off[i], tol, tr_i,
                                tr_c, tr_sig, tr_gap, n_turns):
             n_turns += nt                        # refined by the caller
-            Wt[i, :length], WL[i, :length] = pt[:length], pL[:length]
+            for k in range(length):
+                Wt[i, k], WL[i, k] = pt[k], pL[k]
             wlen[i], wdone[i] = length, done
         else:
             n = commit_path(pt, pL, length, done, i, pix[i], st_t, st_L, ref, on, off, bg, bt,
@@ -213,17 +222,16 @@ def _step(i0, T, start, n_valid, odd, L, pix, st_t, st_L, h, m, brk, grow, slope
     return N, n, n_turns, n_forced
 
 
-@njit
+@njit_borrowing
 def _commit_turned(a, tr_i, tr_tb, tr_Lb, tr_moved, tr_gap, Wt, WL, wlen, wdone, pix, st_t,
-                   st_L, ref, on, off, bg, bt, bp, n):
+                   st_L, ref, on, off, bg, bt, bp, n, pt, pL, xt, xL):
     """Commit the pixels whose turns were refined (turns grouped by pixel, from turn ``a``
     on): with the best points of their moved turns merged into the path in time order
     (ties after the path's own point) where one of them gained a crossing (``moved`` and
     ``gap ≤ 0``), from the original path otherwise. Stops before a pixel whose events
-    might not fit. Returns ``(next turn, n)``; all done when the first is ``len(tr_i)``."""
+    might not fit. ``pt, pL`` (``[M + 3 + K]``) and ``xt, xL`` (``[K]``) are scratch
+    space. Returns ``(next turn, n)``; all done when the first is ``len(tr_i)``."""
     K = tr_i.size
-    pt, pL = np.empty(Wt.shape[1] + K), np.empty(Wt.shape[1] + K)
-    xt, xL = np.empty(K), np.empty(K)
     while a < K:
         i, e, redo = tr_i[a], a, False
         while e < K and tr_i[e] == i:
@@ -253,6 +261,15 @@ def _commit_turned(a, tr_i, tr_tb, tr_Lb, tr_moved, tr_gap, Wt, WL, wlen, wdone,
                          n)
         a = e
     return K, n
+
+
+def _scratch(M: int, K: int = 0) -> tuple[np.ndarray, ...]:
+    """Scratch space of :func:`_step` (``K = 0``) or of :func:`_commit_turned` for ``K``
+    turns, which allocate nothing themselves (:func:`~eventrecon.sim.jit.njit_borrowing`)."""
+    if K:
+        return np.empty(M + 3 + K), np.empty(M + 3 + K), np.empty(K), np.empty(K)
+    return (np.empty(M), np.empty(M), np.empty(M + 3), np.empty(M + 3),
+            np.empty(M + 2, np.int64), np.empty((M + 2, 3)))
 
 
 def run_compiled(signal: Callable, pix: np.ndarray, setup, s, stats: dict
@@ -298,6 +315,7 @@ def run_compiled(signal: Callable, pix: np.ndarray, setup, s, stats: dict
     ev, n = (np.empty(cap, np.int64), np.empty(cap), np.empty(cap, np.int8)), 0
     tol = 0.5 * s.turn_tol * s.threshold
     it = 0
+    scratch = _scratch(M)
 
     while pix.size:
         it += 1
@@ -309,21 +327,20 @@ def run_compiled(signal: Callable, pix: np.ndarray, setup, s, stats: dict
             i, n, K, n_forced = _step(i, T, start, n_valid, odd, L, pix, st_t, st_L, h, m,
                                       brk, grow, slope, ref, on, off, M, s.threshold,
                                       s.max_log_step, s.min_step, s.max_step, s.max_curvature,
-                                      s.turn_tol, Wt, WL, wlen, wdone, *tr, K, *ev, n)
+                                      s.turn_tol, Wt, WL, wlen, wdone, *tr, K, *ev, n, *scratch)
             stats["n_forced"] += n_forced
             if i == pix.size:
                 break
             ev, n = chunk(n), 0
-        if K:                                    # refine the waiting turns (numpy, few)
+        if K:                                    # refine the waiting turns
             ti, tc, tsig, tgap = (x[:K].copy() for x in tr)
-            tri = [[Wt[ti, tc + o] for o in (-1, 0, 1)], [WL[ti, tc + o] for o in (-1, 0, 1)]]
-            tri.append([q.copy() for q in tri[1]])
-            moved = refine_turns(signal, pix[ti], tsig, tri, np.ones(K, bool), tgap, setup,
-                                 tol, stats)
-            a = 0
+            tri = np.empty((6, K))
+            gather_turns(Wt, WL, ti, tc, tri)
+            moved = refine_turns(signal, pix[ti], tsig, tri, tgap, tol, stats)
+            a, turned = 0, _scratch(M, K)
             while True:
-                a, n = _commit_turned(a, ti, tri[0][1], tri[1][1], moved, tgap, Wt, WL, wlen,
-                                      wdone, pix, st_t, st_L, ref, on, off, *ev, n)
+                a, n = _commit_turned(a, ti, tri[1], tri[4], moved, tgap, Wt, WL, wlen,
+                                      wdone, pix, st_t, st_L, ref, on, off, *ev, n, *turned)
                 if a == K:
                     break
                 ev, n = chunk(n), 0

@@ -4,20 +4,23 @@ Scalar counterparts, expression for expression, of :mod:`eventrecon.sim.paths` (
 module docstring states the rules), called per pixel from the loops of
 :mod:`eventrecon.sim.compiled_core`: the vertex of the parabola through three samples,
 the smooth turns of a path and whether one may reach its next level, emission of a
-path's crossings and the cubic crossing time. The per-event helpers are inlined at their
-call sites (a call would cost more than their work).
+path's crossings and the cubic crossing time, and the vertex refinement of the turns
+that may reach a level (:func:`refine_turns`, the counterpart of
+:func:`eventrecon.sim.paths.refine_turns` for the ideal pixel). The per-event helpers are
+inlined at their call sites (a call would cost more than their work).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 
-from eventrecon.sim.jit import njit, njit_inline
+from eventrecon.sim.jit import njit, njit_borrowing, njit_inline
 
 __all__ = ["clip", "parabola", "cross_time", "room", "commit_path", "turn", "find_turns",
-           "queue_turns"]
+           "queue_turns", "gather_turns", "refine_turns"]
 
 
 @njit_inline
@@ -30,7 +33,7 @@ def clip(x, lo, hi):
     return x
 
 
-@njit
+@njit_inline
 def parabola(xa, ya, xb, yb, xc, yc):
     """Vertex ``(x, y)`` and ``A`` of the parabola through three points (scalar form of
     :func:`eventrecon.sim.paths._parabola`)."""
@@ -120,65 +123,151 @@ def commit_path(pt, pL, length, done, i, gid, st_t, st_L, ref, on, off, bg, bt, 
     return n
 
 
-@njit
+@njit_inline
 def turn(pt, pL, c, bound, tol_over):
     """The turn at sample ``c`` of a path, if smooth and reaching more than ``tol_over``
-    beyond ``L(s_c)``: ``(keep, sig)`` (the conditions of
-    :func:`eventrecon.sim.paths._turns`)."""
+    beyond ``L(s_c)`` (the conditions of :func:`eventrecon.sim.paths._turns`):
+    ``(keep, sig, x, y, A)``, the last three those of its :func:`parabola`."""
     sig = 1.0 if pL[c] > pL[c - 1] else -1.0
     xa, xb, xc = pt[c - 1], pt[c], pt[c + 1]
     ya, yb, yc = pL[c - 1], pL[c], pL[c + 1]
-    _, yv, A = parabola(xa, ya, xb, yb, xc, yc)
+    xv, yv, A = parabola(xa, ya, xb, yb, xc, yc)
     over = sig * (yv - yb)
     keep = ((xa < xb) and (xb < xc) and (sig * A < 0) and (over > tol_over)
             and (abs(A) * (xc - xa) * (xc - xb) <= 2 * bound))
-    return keep, sig
+    return keep, sig, xv, yv, A
 
 
 @njit_inline
-def find_turns(pt, pL, length, done, cbound, tol, ct, cs):
+def find_turns(pt, pL, length, done, cbound, tol, ct, cv):
     """Smooth turns of a path (``_turns`` of the numpy core): where the steps change sign
     at a sample ``2 ≤ c ≤ length − 2`` and, on a path that ends, before its last leg.
-    Writes their samples to ``ct`` and signs (+1 at a peak) to ``cs``; returns how many."""
+    Writes their samples to ``ct`` and ``(sign, x, y)`` to the rows of ``cv``: +1 at a
+    peak, then the vertex of the parabola through the turn and its neighbours. Returns
+    how many."""
     nt = 0
+    last = length - 2 if done and length >= 5 else -1    # the last leg of an ending path
     for c in range(2, length - 1):
-        if (pL[c] - pL[c - 1]) * (pL[c + 1] - pL[c]) < 0:
-            keep, sg = turn(pt, pL, c, cbound, tol)
+        prod = (pL[c] - pL[c - 1]) * (pL[c + 1] - pL[c])
+        if prod < 0 or (c == last and prod > 0):
+            keep, sg, xv, yv, _ = turn(pt, pL, c, cbound, tol)
             if keep:
-                ct[nt], cs[nt] = c, sg
-                nt += 1
-    if done and length >= 5:                     # the last leg of an ending path
-        c = length - 2
-        if (pL[c] - pL[c - 1]) * (pL[c + 1] - pL[c]) > 0:
-            keep, sg = turn(pt, pL, c, cbound, tol)
-            if keep:
-                ct[nt], cs[nt] = c, sg
+                ct[nt] = c
+                cv[nt, 0], cv[nt, 1], cv[nt, 2] = sg, xv, yv
                 nt += 1
     return nt
 
 
 @njit_inline
-def queue_turns(i, pt, pL, nt, ct, cs, r0, th_on, th_off, tol, tr_i, tr_c, tr_sig, tr_gap,
+def queue_turns(i, pt, pL, nt, ct, cv, r0, th_on, th_off, tol, tr_i, tr_c, tr_sig, tr_gap,
                  n_turns):
-    """Write pixel ``i``'s ``nt`` turns to ``tr_*`` from ``n_turns`` on, with the distance
-    from each turn to its next level (the reference level there: emission without
-    timing from ``r0``; ``−inf`` when the path has two turns: both are refined). Returns
-    whether one of them may reach its level, i.e. the path must wait for refinement."""
+    """Whether one of pixel ``i``'s ``nt`` turns (:func:`find_turns`) may reach its next
+    level, i.e. the path must wait for refinement; if so its turns are written to ``tr_*``
+    from ``n_turns`` on, with the distance from each to its next level (the reference level
+    there: emission without timing from ``r0``; ``−inf`` when the path has two turns: both
+    are refined)."""
     wait = False
     for j in range(nt):
-        c, sg = ct[j], cs[j]
-        r = r0
-        for cc in range(1, c):
-            Lb = pL[cc + 1]
-            while Lb >= r + th_on:
-                r += th_on
-            while Lb <= r - th_off:
-                r -= th_off
-        gap = -np.inf if nt > 1 else sg * ((r + th_on if sg > 0 else r - th_off) - pL[c])
-        xv, yv, A = parabola(pt[c - 1], pL[c - 1], pt[c], pL[c], pt[c + 1], pL[c + 1])
-        over = sg * (yv - pL[c])
-        wait |= ((sg * A < 0) and (over > tol) and (pt[c - 1] < xv) and (xv < pt[c + 1])
-                 and (xv != pt[c]) and (gap <= 2 * over + 2 * tol))
+        c, sg, xv, yv = ct[j], cv[j, 0], cv[j, 1], cv[j, 2]
+        gap = -np.inf
+        if nt == 1:
+            r = r0
+            for cc in range(1, c):
+                Lb = pL[cc + 1]
+                while Lb >= r + th_on:
+                    r += th_on
+                while Lb <= r - th_off:
+                    r -= th_off
+            gap = sg * ((r + th_on if sg > 0 else r - th_off) - pL[c])
+        over = sg * (yv - pL[c])                 # sg·A < 0 and over > tol: find_turns
+        wait |= ((pt[c - 1] < xv) and (xv < pt[c + 1]) and (xv != pt[c])
+                 and (gap <= 2 * over + 2 * tol))
         tr_i[n_turns + j], tr_c[n_turns + j] = i, c
         tr_sig[n_turns + j], tr_gap[n_turns + j] = sg, gap
     return wait
+
+
+@njit_borrowing
+def gather_turns(Wt, WL, ti, tc, tri):
+    """``tri [6, K]``: rows ``x_{c−1}, x_c, x_{c+1}, L_{c−1}, L_c, L_{c+1}`` of the waiting
+    paths ``Wt, WL`` at turn ``k``'s pixel ``ti[k]`` and sample ``tc[k]``."""
+    for k in range(ti.size):
+        i, c = ti[k], tc[k]
+        for o in range(3):
+            tri[o, k], tri[3 + o, k] = Wt[i, c - 1 + o], WL[i, c - 1 + o]
+
+
+@njit_borrowing
+def _vertices(tri, sig, gap, need, tol, q, x):
+    """The turns ``need`` whose parabola's vertex may still gain: inside its bracket, not
+    its middle point, beyond it by more than ``tol`` and within ``2·over + 2·tol`` of the
+    next level (``gap``). Writes their indices to ``q`` and vertices to ``x``; returns
+    how many."""
+    n = 0
+    for k in range(need.size):
+        if need[k]:
+            xa, xb, xc = tri[0, k], tri[1, k], tri[2, k]
+            xv, yv, A = parabola(xa, tri[3, k], xb, tri[4, k], xc, tri[5, k])
+            over = sig[k] * (yv - tri[4, k])
+            if ((sig[k] * A < 0) and (over > tol) and (xa < xv) and (xv < xc) and (xv != xb)
+                    and (gap[k] <= 2 * over + 2 * tol)):
+                q[n], x[n] = k, xv
+                n += 1
+    return n
+
+
+@njit_inline
+def _keep_bracketed(tri, row, k, val, better, right):
+    """Rows ``row … row + 2`` of turn ``k``: the new value ``val`` becomes the middle if
+    ``better`` (the old middle moving to the side it left), else the bracket's side."""
+    old = tri[row + 1, k]
+    if better:
+        tri[row + 1, k] = val
+        if right:
+            tri[row, k] = old
+        else:
+            tri[row + 2, k] = old
+    elif right:
+        tri[row + 2, k] = val
+    else:
+        tri[row, k] = val
+
+
+@njit_borrowing
+def _bracket(tri, sig, gap, need, q, x, y, n):
+    """Keep the best point of each refined turn ``q[j]`` in the middle of its bracket,
+    the new sample ``(x[j], y[j])`` on the side it fell; only those go on (``need``)."""
+    for k in range(need.size):
+        need[k] = False
+    for j in range(n):
+        k = q[j]
+        right = x[j] > tri[1, k]
+        better = sig[k] * (y[j] - tri[4, k]) > 0
+        if better:
+            gap[k] -= sig[k] * (y[j] - tri[4, k])
+        _keep_bracketed(tri, 0, k, x[j], better, right)
+        _keep_bracketed(tri, 3, k, y[j], better, right)
+        need[k] = True
+
+
+def refine_turns(signal: Callable, g: np.ndarray, sig: np.ndarray, tri: np.ndarray,
+                 gap: np.ndarray, tol: float, stats: dict) -> np.ndarray:
+    """Successive parabolic interpolation of an ideal pixel's turns, two rounds at most,
+    in place on ``tri [6, K]`` (:func:`gather_turns`; its middle point stays the best);
+    ``g [K]`` the turns' pixels, ``sig [K]`` +1 at a peak, ``gap [K]`` the distance to the
+    next level (updated). The same rule and expressions as
+    :func:`eventrecon.sim.paths.refine_turns`, so both engines give the same points.
+
+    Returns the mask of turns whose best point moved."""
+    K = sig.size
+    x0, need = tri[1].copy(), np.ones(K, np.bool_)
+    q, x = np.empty(K, np.int64), np.empty(K)
+    for _ in range(2):
+        n = _vertices(tri, sig, gap, need, tol, q, x)
+        if not n:
+            break
+        y = signal(g[q[:n]], x[:n])
+        stats["n_samples"] += n
+        stats["turn_samples"] += n
+        _bracket(tri, sig, gap, need, q, x, y, n)
+    return tri[1] != x0

@@ -2,35 +2,87 @@
 
 ``njit`` compiles with the options every kernel of the simulator uses: cached next to
 the module (compiled once per machine, a few seconds), ``error_model="numpy"`` (a
-division by zero gives inf/NaN as in numpy, not an exception), no GIL. Without numba
+division by zero gives inf/NaN as in numpy, not an exception), no GIL.
+
+:func:`njit_borrowing` also turns off numba's reference counting of arrays (NRT) for a
+hot loop that only reads and writes arrays it is given: every array variable a loop
+binds -- an argument of an inlined helper, a slice -- otherwise costs an atomic
+increment and decrement per pass (measured: a third of the event core's own time). Such
+a function may not create arrays; its caller allocates the scratch space. Without numba
 the functions stay plain Python and :data:`AVAILABLE` is ``False``: callers then take
 their numpy path.
+
+numba keys a function's cache on its own file's modification time and size only. A
+kernel that inlines a helper from another module would keep its stale machine code after
+an edit of that helper alone, and silently give the old results. So the compiled modules
+(:data:`SOURCES`) are hashed together on import, and their caches are dropped whenever
+the hash changes (:func:`drop_stale_cache`).
 """
 
 from __future__ import annotations
 
+import hashlib
+import itertools
 from collections.abc import Callable
+from pathlib import Path
 
 try:
     import numba
 except ImportError:                              # pragma: no cover - numba is a dependency
     numba = None
 
-__all__ = ["AVAILABLE", "njit", "njit_inline"]
+__all__ = ["AVAILABLE", "SOURCES", "drop_stale_cache", "njit", "njit_borrowing",
+           "njit_inline"]
 
 #: Whether numba could be imported.
 AVAILABLE = numba is not None
+#: The modules of this package whose compiled functions call (inline) one another.
+SOURCES = ("jit.py", "compiled_paths.py", "compiled_core.py", "merge.py")
 
 
-def njit(fn: Callable, inline: bool = False) -> Callable:
+def drop_stale_cache(package: Path = Path(__file__).parent) -> bool:
+    """Delete numba's cache files in ``package/__pycache__`` unless they were made from
+    the :data:`SOURCES` as they are now (a SHA-1 of them all, kept beside the cache).
+    Returns whether anything was dropped. A read-only package is left as it is."""
+    cache = package / "__pycache__"
+    digest = hashlib.sha1(b"".join((package / name).read_bytes() for name in SOURCES
+                                   if (package / name).exists())).hexdigest()
+    stamp = cache / "numba_sources.sha1"
+    try:
+        if stamp.read_text() == digest:
+            return False
+    except OSError:
+        pass
+    try:
+        stale = list(itertools.chain(cache.glob("*.nbi"), cache.glob("*.nbc")))
+        for f in stale:
+            f.unlink(missing_ok=True)
+        cache.mkdir(exist_ok=True)
+        stamp.write_text(digest)
+    except OSError:                              # read-only install: numba recompiles
+        return False                             # or uses what it has
+    return bool(stale)
+
+
+if AVAILABLE:
+    drop_stale_cache()
+
+
+def njit(fn: Callable, inline: bool = False, nrt: bool = True) -> Callable:
     """``fn`` compiled (see the module docstring); ``inline``: at its call sites, for
-    small per-element helpers whose call would cost more than their work."""
+    small per-element helpers whose call would cost more than their work; ``nrt=False``:
+    without reference counting (:func:`njit_borrowing`)."""
     if numba is None:                            # pragma: no cover
         return fn
-    return numba.njit(cache=True, error_model="numpy", nogil=True,
+    return numba.njit(cache=True, error_model="numpy", nogil=True, _nrt=nrt,
                       inline="always" if inline else "never")(fn)
 
 
 def njit_inline(fn: Callable) -> Callable:
     """:func:`njit` with ``inline=True`` (a decorator)."""
     return njit(fn, inline=True)
+
+
+def njit_borrowing(fn: Callable) -> Callable:
+    """:func:`njit` with ``nrt=False`` (a decorator; see the module docstring)."""
+    return njit(fn, nrt=False)

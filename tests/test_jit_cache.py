@@ -1,0 +1,34 @@
+"""numba's cache is dropped when any compiled module of the simulator changes
+(:func:`eventrecon.sim.jit.drop_stale_cache`), not only the file of the cached function."""
+
+from pathlib import Path
+
+from eventrecon.sim.jit import SOURCES, drop_stale_cache
+
+
+def _package(tmp_path: Path) -> Path:
+    for name in SOURCES:
+        (tmp_path / name).write_text(f"# {name}\n")
+    (tmp_path / "__pycache__").mkdir()
+    return tmp_path
+
+
+def _cache_files(package: Path) -> list[str]:
+    return sorted(p.name for p in (package / "__pycache__").glob("*.nb?"))
+
+
+def test_an_edit_of_an_inlined_helper_drops_the_caches_of_every_compiled_module(tmp_path):
+    pkg = _package(tmp_path)
+    cached = ["compiled_core._step-161.py311.1.nbc", "compiled_core._step-161.py311.nbi"]
+    for name in cached:
+        (pkg / "__pycache__" / name).write_bytes(b"x")
+    assert drop_stale_cache(pkg) is True          # no stamp yet: unknown sources
+    assert _cache_files(pkg) == []
+    for name in cached:                           # numba compiles and caches again
+        (pkg / "__pycache__" / name).write_bytes(b"x")
+    assert drop_stale_cache(pkg) is False         # same sources: the cache is kept
+    assert _cache_files(pkg) == sorted(cached)
+    (pkg / "compiled_paths.py").write_text("# an edited helper\n")
+    assert drop_stale_cache(pkg) is True          # another module changed: dropped
+    assert _cache_files(pkg) == []
+    assert drop_stale_cache(pkg) is False
