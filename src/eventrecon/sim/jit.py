@@ -16,7 +16,8 @@ numba keys a function's cache on its own file's modification time and size only.
 kernel that inlines a helper from another module would keep its stale machine code after
 an edit of that helper alone, and silently give the old results. So the compiled modules
 (:data:`SOURCES`) are hashed together on import, and their caches are dropped whenever
-the hash changes (:func:`drop_stale_cache`).
+the hash changes (:func:`drop_stale_cache`). This covers numba's default cache location
+beside the module; a cache moved elsewhere with ``NUMBA_CACHE_DIR`` is not watched.
 """
 
 from __future__ import annotations
