@@ -235,3 +235,21 @@ def test_auto_precision_takes_bf16_only_on_a_cpu_with_native_bf16(
     assert records.run_info(cfg, {})["precision"] == expected    # the record names it
     written = tiny_config(tmp_path, "trainer.lightning.precision=bf16-mixed")
     assert runner._trainer(written, tmp_path / "seg1", [], 0).precision == "bf16-mixed"
+
+
+@pytest.mark.parametrize("model", ["ngp", "hexplane", "tensorf_cp"])
+def test_auto_precision_keeps_the_grid_backbones_in_fp32(tmp_path: Path, monkeypatch,
+                                                         model: str):
+    """bf16 autocast does not speed their steps (``model.cpu_bf16: false``), so ``auto``
+    trains them in fp32 even where the CPU has native bf16; a written value still wins."""
+    import eventrecon.precision as precision
+    from eventrecon import records
+
+    monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda: True)
+    cfg = tiny_config(tmp_path, f"model={model}", base=TINY)
+    assert cfg.model.cpu_bf16 is False
+    assert runner._trainer(cfg, tmp_path / "seg0", [], 0).precision == "32-true"
+    assert records.run_info(cfg, {})["precision"] == "32-true"
+    written = tiny_config(tmp_path, f"model={model}", "trainer.lightning.precision=bf16-mixed",
+                          base=TINY)
+    assert runner._trainer(written, tmp_path / "seg1", [], 0).precision == "bf16-mixed"

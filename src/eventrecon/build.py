@@ -49,8 +49,9 @@ __all__ = ["instantiate", "load_dataset", "scene_properties", "build_field",
 log = logging.getLogger(__name__)
 
 #: Keys of a model or loss node that describe the object rather than construct it (the
-#: row name in the reports, the optimiser settings).
-DESCRIPTIVE_KEYS: tuple[str, ...] = ("name", "optim")
+#: row name in the reports, the optimiser settings, whether bf16 pays on a CPU:
+#: :mod:`eventrecon.precision`).
+DESCRIPTIVE_KEYS: tuple[str, ...] = ("name", "optim", "cpu_bf16")
 
 
 def instantiate(node: DictConfig | dict, where: str, base: type | None = None,

@@ -9,8 +9,15 @@ field step, 113 → 1035 ms per training step; ``python -m benchmarks compile``)
 ``auto`` resolves to
 
 - ``16-mixed`` on a GPU (the authors' AMP);
-- ``bf16-mixed`` on a CPU with native bf16;
-- ``32-true`` on any other CPU.
+- ``bf16-mixed`` on a CPU with native bf16, for a backbone whose step it speeds up
+  (``model.cpu_bf16: true``: the NeRF MLP);
+- ``32-true`` on any other CPU, and for the grid backbones everywhere on a CPU
+  (``model.cpu_bf16: false``). Their steps are gathers, scatters and ``grid_sample``,
+  which autocast leaves in fp32: on an AMX Xeon, 150-step runs at one thread, alternated
+  twice, took the same time in both precisions within ±4 % (NGP 0.372 / 0.381 s per step
+  in fp32 against 0.381 / 0.356 in bf16, HexPlane 0.225 / 0.215 against 0.221 / 0.219,
+  TensoRF-CP 0.130 / 0.138 against 0.137 / 0.133). fp32 then costs nothing and keeps
+  their records exact and alike on every CPU.
 
 Any other value is passed to Lightning as written. The run's record names the precision
 it trained with (``precision`` in ``metrics.json``).
@@ -18,9 +25,11 @@ it trained with (``precision`` in ``metrics.json``).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
-__all__ = ["AUTO", "cpu_has_native_bf16", "resolve_precision"]
+__all__ = ["AUTO", "cpu_has_native_bf16", "model_bf16_pays", "resolve_precision"]
 
 AUTO = "auto"
 _GPU = ("gpu", "cuda")
@@ -43,14 +52,17 @@ def cpu_has_native_bf16() -> bool:
 
 
 def resolve_precision(value: str | int, accelerator: str = "cpu",
-                      native_bf16: bool | None = None) -> str | int:
+                      native_bf16: bool | None = None, bf16_pays: bool = True) -> str | int:
     """Lightning's ``precision`` for ``trainer.lightning.precision = value`` (module
-    docstring); ``native_bf16`` overrides the CPU probe.
+    docstring); ``native_bf16`` overrides the CPU probe; ``bf16_pays`` is the backbone's
+    ``model.cpu_bf16`` (see :func:`model_bf16_pays`).
 
     >>> resolve_precision("auto", "cpu", native_bf16=False)
     '32-true'
     >>> resolve_precision("auto", "cpu", native_bf16=True)
     'bf16-mixed'
+    >>> resolve_precision("auto", "cpu", native_bf16=True, bf16_pays=False)
+    '32-true'
     >>> resolve_precision("auto", "gpu"), resolve_precision("bf16-mixed", "cpu", False)
     ('16-mixed', 'bf16-mixed')
     """
@@ -60,6 +72,18 @@ def resolve_precision(value: str | int, accelerator: str = "cpu",
 
     if str(accelerator) in _GPU or (str(accelerator) == AUTO and torch.cuda.is_available()):
         return "16-mixed"
+    if not bf16_pays:
+        return "32-true"
     if native_bf16 is None:
         native_bf16 = cpu_has_native_bf16()
     return "bf16-mixed" if native_bf16 else "32-true"
+
+
+def model_bf16_pays(model_cfg: Mapping[str, Any] | None) -> bool:
+    """Whether bf16 autocast speeds up this backbone's CPU step (``model.cpu_bf16``, true
+    where the key is absent).
+
+    >>> model_bf16_pays({"name": "hexplane", "cpu_bf16": False}), model_bf16_pays({})
+    (False, True)
+    """
+    return bool((model_cfg or {}).get("cpu_bf16", True))

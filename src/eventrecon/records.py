@@ -42,7 +42,7 @@ from typing import Any
 from eventrecon.checkpointing import atomic_write_bytes, atomic_write_json
 from eventrecon.errors import InputError
 from eventrecon.naming import dataset_name, name_from_meta
-from eventrecon.precision import AUTO, resolve_precision
+from eventrecon.precision import AUTO, model_bf16_pays, resolve_precision
 
 __all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "record_version", "stale_reason", "METRICS_FILE",
            "CURVE_FILE", "DONE_FILE", "CURVE_HEADER", "REQUIRED_KEYS", "STATUSES", "run_info",
@@ -100,7 +100,8 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
             "lr_end_factor": float(cfg.trainer.get("lr_end_factor", 1.0)),
             "lr_warmup": int(cfg.trainer.get("lr_warmup", 0)),
             "precision": str(resolve_precision(lightning.get("precision", AUTO),
-                                               lightning.get("accelerator", "cpu"))),
+                                               lightning.get("accelerator", "cpu"),
+                                               bf16_pays=model_bf16_pays(cfg.model))),
             "data_id": data_id}
 
 
