@@ -133,8 +133,8 @@ def method_notes(runs: Sequence[Run]) -> list[str]:
     if precisions.get("bf16-mixed"):
         notes.append(f"bf16 autocast on the CPU in {precisions['bf16-mixed']} of "
                      f"{sum(precisions.values())} runs that name their precision (the authors: "
-                     "fp16 AMP on GPUs; trainer.lightning.precision=auto takes it only on a "
-                     "CPU with native bf16).")
+                     "fp16 AMP on GPUs; trainer.lightning.precision=auto takes it only for the "
+                     "NeRF MLP on a CPU with native bf16).")
     warmups = sorted({int(r.record["lr_warmup"]) for r in runs if r.record.get("lr_warmup")})
     if warmups:
         notes.append("Learning rate warmed up linearly over the first "
