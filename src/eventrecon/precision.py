@@ -29,7 +29,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["AUTO", "cpu_has_native_bf16", "model_bf16_pays", "resolve_precision"]
+__all__ = ["AUTO", "cpu_has_native_bf16", "resolve_precision", "run_precision"]
 
 AUTO = "auto"
 _GPU = ("gpu", "cuda")
@@ -55,7 +55,7 @@ def resolve_precision(value: str | int, accelerator: str = "cpu",
                       native_bf16: bool | None = None, bf16_pays: bool = True) -> str | int:
     """Lightning's ``precision`` for ``trainer.lightning.precision = value`` (module
     docstring); ``native_bf16`` overrides the CPU probe; ``bf16_pays`` is the backbone's
-    ``model.cpu_bf16`` (see :func:`model_bf16_pays`).
+    ``model.cpu_bf16`` (see :func:`run_precision`).
 
     >>> resolve_precision("auto", "cpu", native_bf16=False)
     '32-true'
@@ -79,11 +79,18 @@ def resolve_precision(value: str | int, accelerator: str = "cpu",
     return "bf16-mixed" if native_bf16 else "32-true"
 
 
-def model_bf16_pays(model_cfg: Mapping[str, Any] | None) -> bool:
-    """Whether bf16 autocast speeds up this backbone's CPU step (``model.cpu_bf16``, true
-    where the key is absent).
+def run_precision(cfg: Mapping[str, Any]) -> str | int:
+    """The precision a run's config trains with: ``trainer.lightning.precision`` and
+    ``.accelerator`` resolved by :func:`resolve_precision`, with the backbone's
+    ``model.cpu_bf16`` (whether bf16 autocast speeds up its CPU step; true where absent).
+    The trainer and the run's record both take it from here.
 
-    >>> model_bf16_pays({"name": "hexplane", "cpu_bf16": False}), model_bf16_pays({})
-    (False, True)
+    >>> cfg = {"trainer": {"lightning": {"precision": "auto", "accelerator": "cpu"}},
+    ...        "model": {"name": "hexplane", "cpu_bf16": False}}
+    >>> run_precision(cfg)
+    '32-true'
     """
-    return bool((model_cfg or {}).get("cpu_bf16", True))
+    lightning = cfg["trainer"].get("lightning") or {}
+    return resolve_precision(lightning.get("precision", AUTO),
+                             lightning.get("accelerator", "cpu"),
+                             bf16_pays=bool((cfg.get("model") or {}).get("cpu_bf16", True)))

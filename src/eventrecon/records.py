@@ -42,7 +42,7 @@ from typing import Any
 from eventrecon.checkpointing import atomic_write_bytes, atomic_write_json
 from eventrecon.errors import InputError
 from eventrecon.naming import dataset_name, name_from_meta
-from eventrecon.precision import AUTO, model_bf16_pays, resolve_precision
+from eventrecon.precision import run_precision
 
 __all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "record_version", "stale_reason", "METRICS_FILE",
            "CURVE_FILE", "DONE_FILE", "CURVE_HEADER", "REQUIRED_KEYS", "STATUSES", "run_info",
@@ -87,7 +87,6 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
     spec, so a changed scene makes earlier records of it stale: :func:`stale_reason`)."""
     name = (dataset_name(cfg.data.root, None) if cfg.data.get("root")
             else name_from_meta(meta) or cfg.scene.get("name", "custom"))
-    lightning = cfg.trainer.get("lightning") or {}
     return {"scene": name,
             "model": cfg.model.get("name") or str(cfg.model.get("_target_")),
             "loss": cfg.loss.get("name", "full"),
@@ -99,9 +98,7 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
             "sizing": _sizing_choice(), "method_version": METHOD_VERSION,
             "lr_end_factor": float(cfg.trainer.get("lr_end_factor", 1.0)),
             "lr_warmup": int(cfg.trainer.get("lr_warmup", 0)),
-            "precision": str(resolve_precision(lightning.get("precision", AUTO),
-                                               lightning.get("accelerator", "cpu"),
-                                               bf16_pays=model_bf16_pays(cfg.model))),
+            "precision": str(run_precision(cfg)),
             "data_id": data_id}
 
 

@@ -42,7 +42,7 @@ from eventrecon.evaluate import evaluate_models, run_device
 from eventrecon.locks import exclusive
 from eventrecon.memory import peak_mb, reset_peak
 from eventrecon.module import EventNeRFModule
-from eventrecon.precision import AUTO, model_bf16_pays, resolve_precision
+from eventrecon.precision import run_precision
 from eventrecon.progress import Progress
 from eventrecon.render.occupancy import OccupancyUpdate
 from eventrecon.segments import run_segments, run_window, segment_config, segment_steps
@@ -89,9 +89,7 @@ def _trainer(cfg: DictConfig, seg_dir: Path, callbacks: list, k: int) -> L.Train
     if logger:
         logger.log_hyperparams(flat_hparams(cfg))
     kwargs = OmegaConf.to_container(cfg.trainer.lightning, resolve=True)
-    kwargs["precision"] = resolve_precision(kwargs.get("precision", AUTO),
-                                            kwargs.get("accelerator", "cpu"),
-                                            bf16_pays=model_bf16_pays(cfg.model))
+    kwargs["precision"] = run_precision(cfg)
     return L.Trainer(max_steps=int(cfg.trainer.max_steps), default_root_dir=str(seg_dir),
                      logger=logger, callbacks=[ckpt, *callbacks, *build_callbacks(cfg)],
                      plugins=[AtomicCheckpointIO()], log_every_n_steps=cfg.trainer.log_every,
