@@ -20,7 +20,7 @@ import numpy as np
 from eventrecon.sim.jit import njit, njit_borrowing, njit_inline
 
 __all__ = ["clip", "parabola", "cross_time", "room", "commit_path", "turn", "find_turns",
-           "queue_turns", "gather_turns", "refine_turns"]
+           "vertex_may_gain", "queue_turns", "gather_turns", "refine_turns"]
 
 
 @njit_inline
@@ -139,6 +139,14 @@ def turn(pt, pL, c, bound, tol_over):
 
 
 @njit_inline
+def vertex_may_gain(xa, xb, xc, xv, over, gap, tol):
+    """Whether a turn's vertex ``xv`` (reaching ``over`` beyond the middle sample ``xb``)
+    is worth evaluating: inside the bracket ``(xa, xc)``, not its middle point, and within
+    ``2·over + 2·tol`` of the next level (``gap``)."""
+    return (xa < xv) and (xv < xc) and (xv != xb) and (gap <= 2 * over + 2 * tol)
+
+
+@njit_inline
 def find_turns(pt, pL, length, done, cbound, tol, ct, cv):
     """Smooth turns of a path (``_turns`` of the numpy core): where the steps change sign
     at a sample ``2 ≤ c ≤ length − 2`` and, on a path that ends, before its last leg.
@@ -180,8 +188,7 @@ def queue_turns(i, pt, pL, nt, ct, cv, r0, th_on, th_off, tol, tr_i, tr_c, tr_si
                     r -= th_off
             gap = sg * ((r + th_on if sg > 0 else r - th_off) - pL[c])
         over = sg * (yv - pL[c])                 # sg·A < 0 and over > tol: find_turns
-        wait |= ((pt[c - 1] < xv) and (xv < pt[c + 1]) and (xv != pt[c])
-                 and (gap <= 2 * over + 2 * tol))
+        wait |= vertex_may_gain(pt[c - 1], pt[c], pt[c + 1], xv, over, gap, tol)
         tr_i[n_turns + j], tr_c[n_turns + j] = i, c
         tr_sig[n_turns + j], tr_gap[n_turns + j] = sg, gap
     return wait
@@ -209,8 +216,8 @@ def _vertices(tri, sig, gap, need, tol, q, x):
             xa, xb, xc = tri[0, k], tri[1, k], tri[2, k]
             xv, yv, A = parabola(xa, tri[3, k], xb, tri[4, k], xc, tri[5, k])
             over = sig[k] * (yv - tri[4, k])
-            if ((sig[k] * A < 0) and (over > tol) and (xa < xv) and (xv < xc) and (xv != xb)
-                    and (gap[k] <= 2 * over + 2 * tol)):
+            if (sig[k] * A < 0) and (over > tol) and vertex_may_gain(xa, xb, xc, xv, over,
+                                                                    gap[k], tol):
                 q[n], x[n] = k, xv
                 n += 1
     return n
