@@ -289,6 +289,28 @@ def test_lr_warms_up_linearly_then_decays(data_dir: Path):
                            Segment(0, 1000))
 
 
+def test_betas_power_raises_adams_betas_and_the_record_and_tables_say_so(data_dir: Path,
+                                                                        tmp_path: Path):
+    cfg = tiny_config(data_dir, "model.optim.betas_power=10")
+    props = build.scene_properties(cfg, build.load_dataset(cfg))
+    opt = build.build_module(cfg, props, None, Segment(0, 1000)).configure_optimizers()
+    # (0.9, 0.999)^10: the moments forget over the same path length at 10x the lr
+    assert opt.param_groups[0]["betas"] == pytest.approx((0.3486784401, 0.9900448802),
+                                                         rel=1e-9)
+    assert records.run_info(cfg, {})["betas_power"] == 10.0
+    assert records.run_info(tiny_config(data_dir), {})["betas_power"] == 1.0   # the authors'
+    from eventrecon.report.cells import method_notes
+    from eventrecon.report.runs import collect_runs
+    records.write_metrics(tmp_path / "r" / "0", {**records.run_info(cfg, {}),
+                                                 "status": "ok", "psnr": 25.0})
+    notes = " ".join(method_notes(collect_runs([tmp_path / "r"])))
+    assert "Adam's betas raised to the power 10 (model.optim.betas_power" in notes
+    for bad, field in (("model.optim.betas_power=0", "model.optim.betas_power"),
+                       ("model.optim.betas=[0.9,1.0]", "model.optim.betas")):
+        with pytest.raises(InputError, match=field.replace(".", r"\.")):
+            build.build_module(tiny_config(data_dir, bad), props, None, Segment(0, 1000))
+
+
 def test_a_segment_trained_by_an_older_method_version_trains_again(
         data_dir: Path, tmp_path: Path, monkeypatch, caplog):
     old = records.METHOD_VERSION

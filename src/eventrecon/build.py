@@ -203,6 +203,42 @@ def lr_warmup(cfg: DictConfig) -> int:
     return value
 
 
+def adam_betas(cfg: DictConfig) -> tuple[float, float]:
+    r"""Adam's ``(β1, β2)`` for ``cfg.model.optim``: its ``betas`` (PyTorch's ``(0.9,
+    0.999)``, the authors', unless the backbone names its own) raised to the power
+    ``k = betas_power`` (default 1, the authors').
+
+    Adam's moments are moving averages with a memory of about :math:`1/(1-β)` steps. At
+    ``k`` times the authors' lr every step moves the weights ``k`` times as far, so with
+    :math:`β^k` the moments forget over the same distance of the path as in the authors'
+    runs (:math:`(β^k)^{n/k} = β^n`). An :class:`InputError` unless ``betas`` are two
+    numbers in ``[0, 1)`` and ``k > 0``.
+
+    >>> adam_betas(OmegaConf.create({"model": {"optim": {"betas_power": 10}}}))
+    (0.3486784401000001, 0.9900448802097482)
+    >>> try:
+    ...     adam_betas(OmegaConf.create({"model": {"optim": {"betas": [0.9]}}}))
+    ... except InputError as e:
+    ...     print(e.field)
+    model.optim.betas
+    """
+    optim = cfg.model.get("optim", {}) or {}
+    betas, power = optim.get("betas", [0.9, 0.999]), optim.get("betas_power", 1.0)
+    try:
+        b1, b2 = (float(b) for b in betas)
+    except (TypeError, ValueError):
+        b1 = b2 = math.nan
+    if not (0.0 <= b1 < 1.0 and 0.0 <= b2 < 1.0):
+        raise InputError("config", "model.optim.betas", "two numbers in [0, 1)", betas)
+    try:
+        k = float(power)
+    except (TypeError, ValueError):
+        k = math.nan
+    if isinstance(power, bool) or not k > 0.0 or not math.isfinite(k):
+        raise InputError("config", "model.optim.betas_power", "a number > 0", power)
+    return b1 ** k, b2 ** k
+
+
 def build_module(cfg: DictConfig, props: SceneProperties, train: SplitData | None,
                  seg: Segment, k: int = 0, device: str | torch.device = "cpu"
                  ) -> EventNeRFModule:
@@ -220,7 +256,7 @@ def build_module(cfg: DictConfig, props: SceneProperties, train: SplitData | Non
     optim = cfg.model.get("optim", {}) or {}
     step = StepConfig(n_rays=cfg.trainer.n_rays, lr=float(optim.get("lr", 1e-3)),
                       weight_decay=float(optim.get("weight_decay", 0.0)),
-                      betas=tuple(float(b) for b in optim.get("betas", (0.9, 0.999))),
+                      betas=adam_betas(cfg),
                       eps=float(optim.get("eps", 1e-8)),
                       max_nonfinite=cfg.trainer.max_nonfinite, log_every=cfg.trainer.log_every,
                       seed=cfg.seed + 1000 * k, max_steps=int(cfg.trainer.max_steps),

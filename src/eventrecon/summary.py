@@ -57,7 +57,9 @@ def format_summary(metrics: Mapping[str, Any], out_dir: str | Path) -> str:
                if metrics.get("lr_end_factor") not in (None, 1.0) else "",
                "bf16 autocast" if metrics.get("precision") == "bf16-mixed" else "",
                f"lr warmed up over {metrics['lr_warmup']} steps" if metrics.get("lr_warmup")
-               else ""]
+               else "",
+               f"Adam's betas to the power {metrics['betas_power']:g}"
+               if metrics.get("betas_power") not in (None, 1.0) else ""]
     changed = [c for c in changed if c]
     subject = metrics.get("psnr_subject")
     rows = [

@@ -141,6 +141,12 @@ def method_notes(runs: Sequence[Run]) -> list[str]:
                      + ", ".join(str(w) for w in warmups)
                      + " steps (trainer.lr_warmup: the authors' scheduler's it/4000, which "
                        "their runs switch off).")
+    powers = sorted({float(r.record["betas_power"]) for r in runs
+                     if r.record.get("betas_power") not in (None, 1.0)})
+    if powers:
+        notes.append("Adam's betas raised to the power " + ", ".join(f"{k:g}" for k in powers)
+                     + " (model.optim.betas_power: at k× the authors' lr the moments then "
+                       "forget over the same distance of the path).")
     versions = Counter(r.version for r in {r.path: r for r in runs}.values())
     if len(versions) > 1:
         notes.append("Runs of several method versions (records' method_version): " + "; ".join(
