@@ -16,7 +16,9 @@ import pytest
 import torch
 
 from eventrecon import build
+from eventrecon.data.batcher import RayBatcher, Segment
 from eventrecon.data.layout import read_dataset, read_split
+from eventrecon.data.selection import select_views
 from eventrecon.data.views import view_key
 from eventrecon.errors import InputError
 from eventrecon.render.cameras import load_camdict
@@ -215,6 +217,31 @@ def test_masks_per_frame(tmp_path):
         for v in range(V):
             iio.imwrite(d / f"{v:02d}.png", truth[fi, v].astype(np.uint8) * 255)
     np.testing.assert_array_equal(read_split(tmp_path / "s").masks, truth)
+
+
+def test_static_masks_also_weight_the_training_losses_per_frame_masks_do_not(tmp_path):
+    write_split(tmp_path / "s", n_events=5)
+    rng = np.random.default_rng(4)
+    grey = rng.integers(0, 256, (V, H, W)).astype(np.uint8)
+    (tmp_path / "s" / "mask").mkdir()
+    for v in range(V):                   # an RGB PNG: the first channel is the weight
+        rgb = np.stack([grey[v], 255 - grey[v], np.zeros_like(grey[v])], -1)
+        iio.imwrite(tmp_path / "s" / "mask" / f"{v:02d}.png", rgb)
+    split = read_split(tmp_path / "s")
+    np.testing.assert_array_equal(split.loss_mask, grey.astype(np.float32) / 255)
+    assert split.masks.shape == (len(FRAME_TIMES), V, H, W)
+    assert select_views(split, 2).loss_mask.shape == (2, H, W)
+    batch = RayBatcher(split, Segment(0.0, 1000.0), decay=1.0, bayer=True).sample(
+        64, torch.Generator().manual_seed(0))        # each ray's weight: its pixel's
+    assert torch.equal(batch["weight"], torch.from_numpy(split.loss_mask)[
+        batch["view"], batch["row"], batch["col"]])
+    write_split(tmp_path / "f", n_events=5)   # per-frame masks: subject metrics only
+    for ft in FRAME_TIMES:
+        d = tmp_path / "f" / "mask" / f"{ft:04d}"
+        d.mkdir(parents=True)
+        for v in range(V):
+            iio.imwrite(d / f"{v:02d}.png", grey[v])
+    assert read_split(tmp_path / "f").loss_mask is None
 
 
 def test_rig_camdict_fixture_is_plausible_davis346():

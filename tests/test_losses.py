@@ -113,6 +113,36 @@ def test_total_loss_sums_levels_and_weights() -> None:
         assert out[k].item() == pytest.approx(v.item(), rel=1e-6)
 
 
+def test_a_loss_mask_weights_the_photometric_terms_as_the_authors_img2mse() -> None:
+    levels, batch = _levels_and_batch()
+    w = torch.tensor([1.0, 0.0, 0.5, 1.0, 0.0, 0.25, 1.0, 0.75], dtype=torch.float64)
+    cfg, step = LossConfig(), 12345
+    plain = total_loss(levels, batch, cfg, step)
+    out = total_loss(levels, {**batch, "weight": w}, cfg, step)
+
+    def img2mse(x, y):        # the authors' utils.img2mse, written out: Σ w·d² / (Σw·C + 1e-6)
+        return ((x - y) ** 2 * w[:, None]).sum() / (w.sum() * x.shape[-1] + 1e-6)
+
+    m = batch["mask"]
+    for key, expected in [
+        ("event", sum(img2mse(m * (torch.log(lv["rgb_t1"] + cfg.eps)
+                                   - torch.log(lv["rgb_t0"] + cfg.eps)),
+                              m * cfg.theta * batch["events"][:, None]) for lv in levels)),
+        ("acc", sum(img2mse(m * torch.log(lv["rgb_t1"] + cfg.eps),
+                            m * (torch.log(batch["ref_rgb"] + cfg.eps)
+                                 + cfg.theta * batch["events_ref"][:, None])) for lv in levels)),
+        ("rgb", sum(img2mse(lv["rgb_ref"], batch["ref_rgb"]) for lv in levels))]:
+        assert out[key].item() == pytest.approx(expected.item(), rel=1e-9)
+    assert out["sparsity"].item() == plain["sparsity"].item()        # never weighted
+    ones = total_loss(levels, {**batch, "weight": torch.ones(8, dtype=torch.float64)}, cfg, step)
+    for key in ("event", "acc", "rgb"):       # all-ones weights: the plain means (to 1e-6)
+        assert ones[key].item() == pytest.approx(plain[key].item(), rel=1e-6)
+    raw = torch.rand(8, dtype=torch.float64)  # a raw reference: C = 1
+    pred = (levels[0]["rgb_ref"] * m).sum(-1)
+    assert rgb_loss(levels[0]["rgb_ref"], raw, m, w).item() == pytest.approx(
+        ((pred - raw) ** 2 * w).sum().item() / (w.sum().item() + 1e-6), rel=1e-9)
+
+
 @pytest.mark.parametrize("field,key", [("w_event", "event"), ("w_acc", "acc"),
                                        ("w_rgb", "rgb"), ("lam_sparsity", "sparsity")])
 def test_each_ablation_switches_exactly_one_term(field: str, key: str) -> None:

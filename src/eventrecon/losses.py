@@ -15,6 +15,10 @@ against ``log 0``), ``θ`` the contrast threshold, ``M`` the per-ray channel mas
                          \\mathrm{mean}_n\\,(1 - T_{last}(t))
 
 The means run over rays × channels *including* the masked zeros (as the authors' code).
+With per-ray loss weights ``w_n`` (a static ``mask/<view>.png`` of the training split,
+:class:`~eventrecon.data.types.SplitData` ``loss_mask``) the three photometric terms are
+the authors' masked mean instead, ``Σ_{n,c} w_n x_{nc}² / (C·Σ_n w_n + 10⁻⁶)`` with ``C``
+the channels compared; the sparsity term is never weighted.
 
 Channel masks (``mask`` argument of the event terms):
 
@@ -117,13 +121,24 @@ def event_channels(rgb: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
     return rgb, mask.to(rgb.dtype)
 
 
-def _masked_mse(pred: Tensor, target: Tensor, mask: Tensor) -> Tensor:
-    """``mean((M⊙pred − M⊙target)²)`` over every element, masked zeros included."""
-    return torch.mean((mask * (pred - target)) ** 2)
+def _mean(sq: Tensor, weight: Tensor | None) -> Tensor:
+    """``mean(sq)`` of ``sq [N, C]`` (or ``[N]``), or with per-ray ``weight [N]`` the
+    authors' masked mean ``Σ w_n sq_nc / (C·Σ w_n + 10⁻⁶)``."""
+    if weight is None:
+        return sq.mean()
+    w = weight.to(sq.dtype)
+    channels = sq.shape[-1] if sq.dim() == 2 else 1
+    return (sq * (w[:, None] if sq.dim() == 2 else w)).sum() / (channels * w.sum() + 1e-6)
+
+
+def _masked_mse(pred: Tensor, target: Tensor, mask: Tensor, weight: Tensor | None) -> Tensor:
+    """``mean((M⊙pred − M⊙target)²)`` over every element, masked zeros included
+    (:func:`_mean` with per-ray ``weight``)."""
+    return _mean((mask * (pred - target)) ** 2, weight)
 
 
 def event_loss(rgb_t0: Tensor, rgb_t1: Tensor, events: Tensor, mask: Tensor | None,
-               eps: float, theta: float) -> Tensor:
+               eps: float, theta: float, weight: Tensor | None = None) -> Tensor:
     """L_event: the rendered log change over the window against ``θ·E(t0, t1)``.
 
     Args:
@@ -131,6 +146,7 @@ def event_loss(rgb_t0: Tensor, rgb_t1: Tensor, events: Tensor, mask: Tensor | No
         events: ``[N]`` accumulated events ``E(t0, t1)`` of each ray's pixel.
         mask: ``[N, 3]`` channel mask (Bayer one-hot) or ``None`` (grey events).
         eps, theta: log-space ε and threshold θ.
+        weight: ``[N]`` per-ray loss weights or ``None`` (module docstring).
 
     Returns:
         scalar ``mean_{n,c}(M⊙[L(Ĉ1) − L(Ĉ0)] − M⊙θE)²``.
@@ -142,18 +158,18 @@ def event_loss(rgb_t0: Tensor, rgb_t1: Tensor, events: Tensor, mask: Tensor | No
     i0, m = event_channels(rgb_t0, mask)
     i1, _ = event_channels(rgb_t1, mask)
     diff = log_intensity(i1, eps) - log_intensity(i0, eps)
-    return _masked_mse(diff, theta * events.to(diff.dtype)[:, None], m)
+    return _masked_mse(diff, theta * events.to(diff.dtype)[:, None], m, weight)
 
 
 def acc_loss(rgb_t1: Tensor, ref_rgb: Tensor, events_ref: Tensor, mask: Tensor | None,
-             eps: float, theta: float) -> Tensor:
+             eps: float, theta: float, weight: Tensor | None = None) -> Tensor:
     """L_acc: the render at ``t1`` against the reference frame advanced by its events.
 
     Args:
         rgb_t1: ``[N, 3]`` linear render at ``t1``.
         ref_rgb: ``[N, 3]`` linear reference colour, or ``[N]`` single-channel raw value.
         events_ref: ``[N]`` ``E_ref→1 = V(t1) − V(t_ref)`` (either time order).
-        mask, eps, theta: as in :func:`event_loss`.
+        mask, eps, theta, weight: as in :func:`event_loss`.
 
     Returns:
         scalar ``mean_{n,c}(M⊙L(Ĉ(t1)) − M⊙[L(C_ref) + θE_ref])²``.
@@ -161,10 +177,11 @@ def acc_loss(rgb_t1: Tensor, ref_rgb: Tensor, events_ref: Tensor, mask: Tensor |
     i1, m = event_channels(rgb_t1, mask)
     iref, _ = event_channels(ref_rgb.to(i1.dtype), mask)
     target = log_intensity(iref, eps) + theta * events_ref.to(i1.dtype)[:, None]
-    return _masked_mse(log_intensity(i1, eps), target, m)
+    return _masked_mse(log_intensity(i1, eps), target, m, weight)
 
 
-def rgb_loss(rgb_ref: Tensor, ref_rgb: Tensor, raw_mask: Tensor | None = None) -> Tensor:
+def rgb_loss(rgb_ref: Tensor, ref_rgb: Tensor, raw_mask: Tensor | None = None,
+             weight: Tensor | None = None) -> Tensor:
     """L_rgb: linear-space MSE of the render at ``t_ref`` against the reference frame.
 
     Args:
@@ -172,6 +189,7 @@ def rgb_loss(rgb_ref: Tensor, ref_rgb: Tensor, raw_mask: Tensor | None = None) -
         ref_rgb: ``[N, 3]`` linear reference, or ``[N]`` single-channel Bayer raw.
         raw_mask: ``[N, 3]`` Bayer one-hot of the raw pixels (required for ``[N]``
             references): the render is masked and summed to the channel the pixel saw.
+        weight: ``[N]`` per-ray loss weights or ``None`` (module docstring).
 
     Returns:
         scalar ``mean_{n,c}(Ĉ − C_ref)²`` or, raw, ``mean_n(Σ_c M⊙Ĉ − C_raw)²``.
@@ -184,8 +202,8 @@ def rgb_loss(rgb_ref: Tensor, ref_rgb: Tensor, raw_mask: Tensor | None = None) -
         if raw_mask is None:
             raise InputError("losses", "raw_mask", "a [N, 3] Bayer mask for a raw reference")
         pred = (rgb_ref * raw_mask.to(rgb_ref.dtype)).sum(-1)
-        return torch.mean((pred - ref_rgb.to(pred.dtype)) ** 2)
-    return torch.mean((rgb_ref - ref_rgb.to(rgb_ref.dtype)) ** 2)
+        return _mean((pred - ref_rgb.to(pred.dtype)) ** 2, weight)
+    return _mean((rgb_ref - ref_rgb.to(rgb_ref.dtype)) ** 2, weight)
 
 
 def sparsity_loss(opacities: Sequence[Tensor]) -> Tensor:
@@ -221,7 +239,8 @@ def total_loss(levels: Sequence[dict[str, Tensor]], batch: dict[str, Tensor | No
         batch: ``events [N]`` (E(t0,t1)), ``events_ref [N]`` (V(t1) − V(t_ref)),
             ``ref_rgb [N,3]`` or ``[N]`` raw, ``mask [N,3]`` or ``None`` (event-pixel
             channel mask, see the module docstring) and optionally ``raw_mask [N,3]``
-            (Bayer mask of raw reference frames; defaults to ``mask``).
+            (Bayer mask of raw reference frames; defaults to ``mask``) and ``weight [N]``
+            (per-ray loss weights, module docstring; ``None`` or absent: plain means).
         cfg: weights and constants.
         step: the global step (for the sparsity ramp).
 
@@ -232,20 +251,21 @@ def total_loss(levels: Sequence[dict[str, Tensor]], batch: dict[str, Tensor | No
     """
     if not levels:
         raise InputError("total_loss", "levels", "at least one render level", 0)
-    mask = batch.get("mask")
+    mask, weight = batch.get("mask"), batch.get("weight")
     out: dict[str, Tensor] = {}
     terms: list[tuple[str, float]] = []
     if cfg.w_event > 0:
         out["event"] = sum(event_loss(lv["rgb_t0"], lv["rgb_t1"], batch["events"], mask,
-                                      cfg.eps, cfg.theta) for lv in levels)
+                                      cfg.eps, cfg.theta, weight) for lv in levels)
         terms.append(("event", cfg.w_event))
     if cfg.w_acc > 0:
         out["acc"] = sum(acc_loss(lv["rgb_t1"], batch["ref_rgb"], batch["events_ref"], mask,
-                                  cfg.eps, cfg.theta) for lv in levels)
+                                  cfg.eps, cfg.theta, weight) for lv in levels)
         terms.append(("acc", cfg.w_acc))
     if cfg.w_rgb > 0:
         raw_mask = batch.get("raw_mask", mask)
-        out["rgb"] = sum(rgb_loss(lv["rgb_ref"], batch["ref_rgb"], raw_mask) for lv in levels)
+        out["rgb"] = sum(rgb_loss(lv["rgb_ref"], batch["ref_rgb"], raw_mask, weight)
+                         for lv in levels)
         terms.append(("rgb", cfg.w_rgb))
     if cfg.lam_sparsity > 0:
         out["sparsity"] = sum(

@@ -89,6 +89,8 @@ class RayBatcher:
         self.frame_times = torch.from_numpy(frame_times[idx]).to(self.device)  # time units
         self.frames = torch.from_numpy(srgb_to_linear(split.frames[idx])).to(self.device)
         self.background = background_linear(split).to(self.device)
+        self.loss_mask = (None if split.loss_mask is None
+                          else torch.from_numpy(split.loss_mask).to(self.device))
         #: ``(t0, t1)`` normalised window of the last :meth:`sample` (Python floats).
         self.last_window: tuple[float, float] = (0.0, 1.0)
 
@@ -103,7 +105,8 @@ class RayBatcher:
             dict with ``rays_o, rays_d [N,3]``, ``view, row, col [N]``, ``t0, t1, t_ref
             [N,1]`` (normalised), ``events [N]`` = E(t0,t1), ``events_ref [N]`` =
             V(t1) − V(t_ref), ``ref_rgb [N,3]`` (or ``[N]`` raw), ``bg [N,3]``,
-            ``mask [N,3]`` (Bayer one-hot) or ``None`` for grey event pixels.
+            ``mask [N,3]`` (Bayer one-hot) or ``None`` for grey event pixels, ``weight
+            [N]`` the split's loss mask at each ray's pixel or ``None`` (none given).
         """
         seg, H, W = self.segment, self.cameras.height, self.cameras.width
         t0, t1 = sampling.sample_window(gen)
@@ -136,4 +139,5 @@ class RayBatcher:
             "ref_rgb": self.frames[ref, view, row, col],
             "bg": self.background[view, row, col],
             "mask": mask,
+            "weight": None if self.loss_mask is None else self.loss_mask[view, row, col],
         }

@@ -8,6 +8,7 @@ Per split folder (docs/method.md, "Data layout of the published dataset")::
     rgb/<frame>/<view>.png       one folder per frame, named by its time unit [optional]
     background/<view>.png        empty-scene frame per view                [optional]
     mask/<frame>/<view>.png      foreground masks (or mask/<view>.png)     [optional]
+                                 (a static mask/<view>.png also weights training losses)
     camdict.json                 per image: K, W2C (4×4 flat), dist, img_size
 
 Rules:
@@ -171,15 +172,18 @@ def _read_frames(split: Path, names: list[str], ref: Path,
 
 
 def _read_masks(split: Path, names: list[str], ref: Path, times: np.ndarray,
-                size: _ImageSize) -> np.ndarray | None:
-    """``[F, V, H, W]`` bool: per-frame ``mask/<time>/<view>.png`` or static ``mask/<view>.png``."""
+                size: _ImageSize) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(masks, loss_mask)``: ``[F, V, H, W]`` bool from per-frame ``mask/<time>/<view>.png``
+    or static ``mask/<view>.png``, and for static masks only the training-loss weights
+    ``[V, H, W]`` float32 = first channel / 255 (the authors' reading; ``SplitData``)."""
     mask = split / "mask"
     if not mask.is_dir():
-        return None
+        return None, None
     if any(f.is_file() and f.suffix.lower() == ".png" for f in mask.iterdir()):
         per_view = _read_view_images(mask, names, ref, size)
         m = per_view > 127 if per_view.ndim == 3 else (per_view > 127).any(-1)
-        return np.broadcast_to(m, (len(times), *m.shape)).copy()
+        weight = (per_view if per_view.ndim == 3 else per_view[..., 0]).astype(np.float32) / 255
+        return np.broadcast_to(m, (len(times), *m.shape)).copy(), weight
     folders = _frame_folders(mask)
     mt = np.array([t for t, _ in folders], np.float64)
     if mt.shape != times.shape or not np.allclose(mt, times):
@@ -189,7 +193,7 @@ def _read_masks(split: Path, names: list[str], ref: Path, times: np.ndarray,
     for _, d in folders:
         im = _read_view_images(d, names, ref, size)
         out.append(im > 127 if im.ndim == 3 else (im > 127).any(-1))
-    return np.stack(out)
+    return np.stack(out), None
 
 
 def read_split(path: str | Path, *, binary_polarity: bool = False,
@@ -207,7 +211,8 @@ def read_split(path: str | Path, *, binary_polarity: bool = False,
         (one time-sorted :class:`EventStream` per view, or ``None`` without ``events/``),
         ``frame_times [F]``, ``frames [F, V, H, W, 3]`` uint8 (``[F, V, H, W]`` for
         single-channel raw), ``background [V, H, W(, 3)]`` or ``None``, masks
-        ``[F, V, H, W]`` bool or ``None``.
+        ``[F, V, H, W]`` bool or ``None``, and ``loss_mask [V, H, W]`` for a static
+        ``mask/<view>.png`` (:class:`~eventrecon.data.types.SplitData`).
 
     Raises:
         InputError: for any missing, malformed or inconsistent file (one line naming it).
@@ -225,7 +230,7 @@ def read_split(path: str | Path, *, binary_polarity: bool = False,
     background = None
     if (split / "background").is_dir():
         background = _read_view_images(split / "background", names, ref_path, size)
-    masks = _read_masks(split, names, ref_path, times, size)
+    masks, loss_mask = _read_masks(split, names, ref_path, times, size)
     if size.hw is not None:
         h, w = size.hw
         if cams.width and (cams.width, cams.height) != (w, h):
@@ -247,7 +252,7 @@ def read_split(path: str | Path, *, binary_polarity: bool = False,
     log.info("read %s: %d views %dx%d, %d frames, %s events", split, len(names), w, h,
              len(times), "no" if events is None else sum(len(e) for e in events))
     return SplitData(root=split, cameras=cams, events=events, frame_times=times,
-                     frames=frames, background=background, masks=masks)
+                     frames=frames, background=background, masks=masks, loss_mask=loss_mask)
 
 
 def read_dataset(root: str | Path, *, binary_polarity: bool = False,

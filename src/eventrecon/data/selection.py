@@ -61,7 +61,8 @@ def select_views(split: SplitData, n: int | None) -> SplitData:
         events=None if split.events is None else [split.events[i] for i in idx],
         frames=split.frames[:, idx],
         background=None if split.background is None else split.background[idx],
-        masks=None if split.masks is None else split.masks[:, idx])
+        masks=None if split.masks is None else split.masks[:, idx],
+        loss_mask=None if split.loss_mask is None else split.loss_mask[idx])
 
 
 def select_fps(split: SplitData, fps: float | None, duration_s: float,

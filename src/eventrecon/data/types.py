@@ -31,6 +31,10 @@ class SplitData:
         frames: ``[F, V, H, W, 3]`` uint8 (or ``[F, V, H, W]`` single-channel Bayer raw).
         background: ``[V, H, W, 3]`` uint8 empty-scene frame per view, or ``None``.
         masks: ``[F, V, H, W]`` bool foreground masks, or ``None``.
+        loss_mask: ``[V, H, W]`` float32 in ``[0, 1]``: a static ``mask/<view>.png`` (its
+            first channel / 255), by which the authors weight the photometric losses of
+            training rays (:mod:`eventrecon.losses`); ``None`` without one (per-frame
+            ``mask/<time>/`` folders, the simulator's, are never training masks).
     """
 
     root: Path
@@ -40,6 +44,7 @@ class SplitData:
     frames: np.ndarray
     background: np.ndarray | None = None
     masks: np.ndarray | None = None
+    loss_mask: np.ndarray | None = None
 
     @property
     def n_views(self) -> int:
