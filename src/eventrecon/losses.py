@@ -126,9 +126,8 @@ def _mean(sq: Tensor, weight: Tensor | None) -> Tensor:
     authors' masked mean ``Σ w_n sq_nc / (C·Σ w_n + 10⁻⁶)``."""
     if weight is None:
         return sq.mean()
-    w = weight.to(sq.dtype)
-    channels = sq.shape[-1] if sq.dim() == 2 else 1
-    return (sq * (w[:, None] if sq.dim() == 2 else w)).sum() / (channels * w.sum() + 1e-6)
+    w, sq = weight.to(sq.dtype), sq.reshape(weight.shape[0], -1)
+    return (sq * w[:, None]).sum() / (sq.shape[1] * w.sum() + 1e-6)
 
 
 def _masked_mse(pred: Tensor, target: Tensor, mask: Tensor, weight: Tensor | None) -> Tensor:
