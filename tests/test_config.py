@@ -48,6 +48,10 @@ def test_defaults():
     # trainer=cpu sizes the NeRF MLP for 2 cores (conf/sizing/cpu_nerf.yaml: 4x64, lr 1e-3);
     # the paper's size and lr at trainer=paper (test_paper_trainer_preset_has_paper_values)
     assert (cfg.model.depth, cfg.model.width, cfg.model.optim.lr) == (4, 64, 1e-3)
+    # ... and Adam's betas to the power 10 there (method version 4); the authors' elsewhere
+    assert cfg.model.optim.betas_power == 10 and list(cfg.model.optim.betas) == [0.9, 0.999]
+    assert _compose("trainer=paper").model.optim.betas_power == 1.0
+    assert _compose("model=ngp").model.optim.betas_power == 1.0
 
 
 def test_compressed_schedules_are_a_named_option_and_the_ramp_is_never_compressed():

@@ -298,7 +298,9 @@ def test_betas_power_raises_adams_betas_and_the_record_and_tables_say_so(data_di
     assert opt.param_groups[0]["betas"] == pytest.approx((0.3486784401, 0.9900448802),
                                                          rel=1e-9)
     assert records.run_info(cfg, {})["betas_power"] == 10.0
-    assert records.run_info(tiny_config(data_dir), {})["betas_power"] == 1.0   # the authors'
+    authors = tiny_config(data_dir, "model.optim.betas_power=1")
+    assert records.run_info(authors, {})["betas_power"] == 1.0
+    assert build.adam_betas(authors) == (0.9, 0.999)
     from eventrecon.report.cells import method_notes
     from eventrecon.report.runs import collect_runs
     records.write_metrics(tmp_path / "r" / "0", {**records.run_info(cfg, {}),

@@ -44,14 +44,14 @@ from eventrecon.errors import InputError
 from eventrecon.naming import dataset_name, name_from_meta
 from eventrecon.precision import run_precision
 
-__all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "record_version", "stale_reason", "METRICS_FILE",
+__all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "VERSION_SCOPE", "record_version", "stale_reason", "METRICS_FILE",
            "CURVE_FILE", "DONE_FILE", "CURVE_HEADER", "REQUIRED_KEYS", "STATUSES", "run_info",
            "write_metrics", "read_metrics", "finished_metrics", "write_done", "read_done",
            "CurveLog", "read_curve_rows", "write_curve", "stitch_curves"]
 
 #: Version of the training method: bumped by every change that alters what a run trains
 #: (sampling, rendering, losses, optimiser) and so makes earlier records stale.
-METHOD_VERSION = 3
+METHOD_VERSION = 4
 #: What each version changed (the report's footnote for tables that mix versions).
 METHOD_VERSIONS: dict[int, str] = {
     1: "each of a ray's three renders (t0, t1, t_ref) drew its own coarse samples",
@@ -61,7 +61,13 @@ METHOD_VERSIONS: dict[int, str] = {
        "in half-wide end cells, forward-difference steps, the fine histogram over the coarse "
        "midpoints), a reference frame drawn per view, and per-view pixel draws without "
        "replacement with the authors' int() count of event rays",
+    4: "the CPU NeRF (sizing cpu_nerf) trains with Adam's betas to the power 10 "
+       "(model.optim.betas_power: at its 10x lr the moments forget over the authors' path "
+       "length)",
 }
+#: Versions that changed only some runs: the sizing configs whose runs each one changed. A
+#: record of any other run made before it stands for that version too (it trains the same).
+VERSION_SCOPE: dict[int, frozenset[str]] = {4: frozenset({"cpu_nerf"})}
 
 METRICS_FILE = "metrics.json"
 CURVE_FILE = "curve.csv"
@@ -156,9 +162,22 @@ def finished_metrics(path: str | Path, max_steps: int, evaluate: bool,
 
 
 def record_version(record: Mapping[str, Any]) -> int:
-    """The :data:`METHOD_VERSION` a ``metrics.json`` or ``done.json`` was made with (1 when
-    it does not say: records older than the field)."""
-    return int(record.get("method_version") or 1)
+    """The :data:`METHOD_VERSION` a ``metrics.json`` or ``done.json`` stands for: the one it
+    was made with (1 when it does not say: records older than the field), carried over each
+    later version that changed only other runs (:data:`VERSION_SCOPE`; a record that does
+    not name its ``sizing`` is taken to be changed).
+
+    >>> record_version({"method_version": 3, "sizing": "cpu_ngp"}), record_version(
+    ...     {"method_version": 3, "sizing": "cpu_nerf"})
+    (4, 3)
+    """
+    version = int(record.get("method_version") or 1)
+    while version < METHOD_VERSION:
+        scope = VERSION_SCOPE.get(version + 1)
+        if scope is None or record.get("sizing") is None or record["sizing"] in scope:
+            break
+        version += 1
+    return version
 
 
 def stale_reason(record: Mapping[str, Any], data_id: str | None) -> tuple[str, str] | None:
