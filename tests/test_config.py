@@ -51,9 +51,10 @@ def test_defaults():
     # ... and Adam's betas to the power 10 there (method version 4); the authors' elsewhere
     assert cfg.model.optim.betas_power == 10 and list(cfg.model.optim.betas) == [0.9, 0.999]
     assert _compose("trainer=paper").model.optim.betas_power == 1.0
-    ngp = _compose("model=ngp").model.optim     # NGP's CPU lr is 10x the authors' too
-    assert ngp.betas_power == 10 and (list(ngp.betas), ngp.eps) == ([0.9, 0.999], 1e-8)
-    assert _compose("model=hexplane").model.optim.betas_power == 1.0
+    # NGP: the authors' AdamW at the paper's size, instant-NGP's optimiser at the CPU size
+    ngp, paper = (_compose("model=ngp", *t).model.optim for t in ((), ("trainer=paper",)))
+    assert (ngp.lr, list(ngp.betas), ngp.eps, ngp.betas_power) == (1e-2, [0.9, 0.99], 1e-15, 1.0)
+    assert (paper.lr, list(paper.betas), paper.eps) == (1e-3, [0.9, 0.999], 1e-8)
 
 
 def test_compressed_schedules_are_a_named_option_and_the_ramp_is_never_compressed():

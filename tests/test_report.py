@@ -480,7 +480,7 @@ def test_a_newer_method_version_supersedes_its_job_and_a_mixed_table_says_so(tmp
 def test_a_version_that_changed_only_some_runs_leaves_the_others_current(tmp_path):
     from eventrecon import records
 
-    assert records.METHOD_VERSION == 4 and records.VERSION_SCOPE[4] == {"cpu_nerf", "cpu_ngp"}
+    assert records.METHOD_VERSION == 4 and records.VERSION_SCOPE[4] == {"cpu_nerf"}
     base = {"scene": "spheres", "model": "hexplane", "loss": "full", "views": 6, "fps": 5.0,
             "status": "ok", "psnr": 25.0, "max_steps": 1000, "method_version": 3}
     found = {}
@@ -488,7 +488,7 @@ def test_a_version_that_changed_only_some_runs_leaves_the_others_current(tmp_pat
         path = records.write_metrics(tmp_path / name, {**base, "sizing": sizing})
         found[name] = (records.record_version(records.read_metrics(path)),
                        records.finished_metrics(path, 1000, evaluate=True) is not None)
-    # version 4 changed only the CPU NeRF and NGP: a version-3 HexPlane record trains the
+    # version 4 changed only the CPU NeRF: a version-3 HexPlane record trains the
     # same and stays finished; the CPU NeRF's, and a record that does not say its sizing,
     # train again
     assert found == {"hexplane": (4, True), "nerf": (3, False), "unnamed": (3, False)}

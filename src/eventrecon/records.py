@@ -61,14 +61,13 @@ METHOD_VERSIONS: dict[int, str] = {
        "in half-wide end cells, forward-difference steps, the fine histogram over the coarse "
        "midpoints), a reference frame drawn per view, and per-view pixel draws without "
        "replacement with the authors' int() count of event rays",
-    4: "the CPU NeRF and NGP (sizings cpu_nerf, cpu_ngp: 10x the authors' lr) train with "
-       "Adam's betas to the power 10 (model.optim.betas_power: the moments forget over the "
-       "authors' path length); NGP's betas and eps are the authors' (0.9, 0.999; 1e-8), "
-       "not instant-NGP's (0.9, 0.99; 1e-15)",
+    4: "the CPU NeRF (sizing cpu_nerf: 10x the authors' lr) trains with Adam's betas to "
+       "the power 10 (model.optim.betas_power: the moments forget over the authors' path "
+       "length)",
 }
 #: Versions that changed only some runs: the sizing configs whose runs each one changed. A
 #: record of any other run made before it stands for that version too (it trains the same).
-VERSION_SCOPE: dict[int, frozenset[str]] = {4: frozenset({"cpu_nerf", "cpu_ngp"})}
+VERSION_SCOPE: dict[int, frozenset[str]] = {4: frozenset({"cpu_nerf"})}
 
 METRICS_FILE = "metrics.json"
 CURVE_FILE = "curve.csv"
@@ -168,7 +167,7 @@ def record_version(record: Mapping[str, Any]) -> int:
     later version that changed only other runs (:data:`VERSION_SCOPE`; a record that does
     not name its ``sizing`` is taken to be changed).
 
-    >>> record_version({"method_version": 3, "sizing": "cpu_hexplane"}), record_version(
+    >>> record_version({"method_version": 3, "sizing": "cpu_ngp"}), record_version(
     ...     {"method_version": 3, "sizing": "cpu_nerf"})
     (4, 3)
     """
