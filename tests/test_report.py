@@ -477,22 +477,39 @@ def test_a_newer_method_version_supersedes_its_job_and_a_mixed_table_says_so(tmp
     assert f"; 1 of version {METHOD_VERSION} (" in text
 
 
-def test_a_version_that_changed_only_some_runs_leaves_the_others_current(tmp_path):
+def test_a_version_that_changed_only_some_runs_leaves_the_others_current(tmp_path,
+                                                                          monkeypatch):
     from eventrecon import records
 
-    assert records.METHOD_VERSION == 4 and records.VERSION_SCOPE[4] == {"cpu_nerf"}
+    monkeypatch.setattr(records, "METHOD_VERSION", 4)   # version 4's scope, at any later one
+    changed = records.VERSION_SCOPE[4]
+    assert [s for s in ("cpu_nerf", "cpu_ngp", "cpu_hexplane", "cpu_tensorf_cp", "paper_nerf",
+                        "paper_ngp", "gpu_ngp") if changed(s)] == ["cpu_nerf", "paper_ngp",
+                                                                    "gpu_ngp"]
     base = {"scene": "spheres", "model": "hexplane", "loss": "full", "views": 6, "fps": 5.0,
             "status": "ok", "psnr": 25.0, "max_steps": 1000, "method_version": 3}
     found = {}
-    for name, sizing in (("hexplane", "cpu_hexplane"), ("nerf", "cpu_nerf"), ("unnamed", None)):
+    for name, sizing in (("hexplane", "cpu_hexplane"), ("nerf", "cpu_nerf"),
+                         ("paper_ngp", "paper_ngp"), ("unnamed", None)):
         path = records.write_metrics(tmp_path / name, {**base, "sizing": sizing})
         found[name] = (records.record_version(records.read_metrics(path)),
                        records.finished_metrics(path, 1000, evaluate=True) is not None)
-    # version 4 changed only the CPU NeRF: a version-3 HexPlane record trains the
-    # same and stays finished; the CPU NeRF's, and a record that does not say its sizing,
-    # train again
-    assert found == {"hexplane": (4, True), "nerf": (3, False), "unnamed": (3, False)}
+    # version 4 changed the CPU NeRF (betas^10) and NGP at the paper's size (the authors'
+    # betas): a version-3 CPU HexPlane record trains the same and stays finished; the others,
+    # and a record that says no sizing outside a job, train again
+    assert found == {"hexplane": (4, True), "nerf": (3, False), "paper_ngp": (3, False),
+                     "unnamed": (3, False)}
     assert records.record_version({"method_version": 2, "sizing": "cpu_hexplane"}) == 2
+    # a segment's done.json (or checkpoint) of version 3 names no sizing: it is the running
+    # job's, so a CPU HexPlane job keeps its trained segment and a CPU NeRF job trains again
+    records.write_done(tmp_path / "seg0", 1000, 1000, 10.0, 0, data_id="d")
+    done = json.loads((tmp_path / "seg0" / "done.json").read_text())
+    (tmp_path / "seg0" / "done.json").write_text(json.dumps(
+        {k: v for k, v in done.items() if k != "sizing"} | {"method_version": 3}))
+    for sizing, kept in (("cpu_hexplane", True), ("cpu_nerf", False)):
+        monkeypatch.setattr(records, "sizing_choice", lambda s=sizing: s)
+        assert (records.read_done(tmp_path / "seg0", 1000, current_method=True,
+                                  data_id="d") is not None) == kept
 
 
 def test_a_table_whose_runs_of_a_scene_used_different_datasets_says_so(tmp_path):

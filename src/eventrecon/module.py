@@ -244,6 +244,7 @@ class EventNeRFModule(L.LightningModule):
             "opacity_log": list(self.opacity_log),
             "method_version": records.METHOD_VERSION,
             "data_id": self.data_id,
+            "sizing": records.sizing_choice(),
         }
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:

@@ -23,7 +23,8 @@ A run folder holds
 
 A finished run (or segment) made with another :data:`METHOD_VERSION` is not finished for
 a sweep: it trains again, and the report reads only the newest version of each job
-(:func:`eventrecon.report.runs.current_runs`).
+(:func:`eventrecon.report.runs.current_runs`). A version that changed only some runs
+(:data:`VERSION_SCOPE`) leaves the others' records current (:func:`record_version`).
 
 Readers (:mod:`eventrecon.report.runs`) and writers (the runner, the held-out monitor)
 both use the names and functions here, so the format has one definition.
@@ -35,7 +36,7 @@ import csv
 import io
 import json
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -44,8 +45,9 @@ from eventrecon.errors import InputError
 from eventrecon.naming import dataset_name, name_from_meta
 from eventrecon.precision import run_precision
 
-__all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "VERSION_SCOPE", "record_version", "stale_reason", "METRICS_FILE",
-           "CURVE_FILE", "DONE_FILE", "CURVE_HEADER", "REQUIRED_KEYS", "STATUSES", "run_info",
+__all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "VERSION_SCOPE", "record_version", "stale_reason",
+           "METRICS_FILE", "CURVE_FILE", "DONE_FILE", "CURVE_HEADER", "REQUIRED_KEYS",
+           "STATUSES", "run_info", "sizing_choice",
            "write_metrics", "read_metrics", "finished_metrics", "write_done", "read_done",
            "CurveLog", "read_curve_rows", "write_curve", "stitch_curves"]
 
@@ -63,11 +65,21 @@ METHOD_VERSIONS: dict[int, str] = {
        "replacement with the authors' int() count of event rays",
     4: "the CPU NeRF (sizing cpu_nerf: 10x the authors' lr) trains with Adam's betas to "
        "the power 10 (model.optim.betas_power: the moments forget over the authors' path "
-       "length)",
+       "length); NGP at the paper's size takes the authors' AdamW betas and eps (0.9, "
+       "0.999; 1e-8), not instant-NGP's, which its CPU sizing keeps",
 }
-#: Versions that changed only some runs: the sizing configs whose runs each one changed. A
-#: record of any other run made before it stands for that version too (it trains the same).
-VERSION_SCOPE: dict[int, frozenset[str]] = {4: frozenset({"cpu_nerf"})}
+
+
+def _v4_changed(sizing: str) -> bool:
+    """Version 4 changed the CPU NeRF and NGP at every size but the CPU's."""
+    return sizing == "cpu_nerf" or (sizing.endswith("_ngp") and sizing != "cpu_ngp")
+
+
+#: Versions that changed only some runs: whether each one changed the runs of a sizing
+#: choice (``<trainer>_<model>``, e.g. ``cpu_nerf``; Hydra records it even where no such
+#: file exists). A record of any other run made before it stands for that version too (it
+#: trains the same).
+VERSION_SCOPE: dict[int, Callable[[str], bool]] = {4: _v4_changed}
 
 METRICS_FILE = "metrics.json"
 CURVE_FILE = "curve.csv"
@@ -101,7 +113,7 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
             "experiment": cfg.get("sweep_name"), "tag": cfg.get("tag"), "seed": cfg.get("seed"),
             # what the run changed from the paper's method (the tables footnote it)
             "schedule": cfg.trainer.get("schedule"), "skip": cfg.render.get("skip"),
-            "sizing": _sizing_choice(), "method_version": METHOD_VERSION,
+            "sizing": sizing_choice(), "method_version": METHOD_VERSION,
             "lr_end_factor": float(cfg.trainer.get("lr_end_factor", 1.0)),
             "lr_warmup": int(cfg.trainer.get("lr_warmup", 0)),
             "betas_power": float((cfg.model.get("optim", {}) or {}).get("betas_power", 1.0)),
@@ -109,7 +121,7 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
             "data_id": data_id}
 
 
-def _sizing_choice() -> str | None:
+def sizing_choice() -> str | None:
     """The ``sizing`` config picked for this run (``cpu_nerf`` ...), inside a Hydra app."""
     try:
         from hydra.core.hydra_config import HydraConfig
@@ -161,20 +173,23 @@ def finished_metrics(path: str | Path, max_steps: int, evaluate: bool,
     return done if same and (not evaluate or done.get("psnr") is not None) else None
 
 
-def record_version(record: Mapping[str, Any]) -> int:
-    """The :data:`METHOD_VERSION` a ``metrics.json`` or ``done.json`` stands for: the one it
-    was made with (1 when it does not say: records older than the field), carried over each
-    later version that changed only other runs (:data:`VERSION_SCOPE`; a record that does
-    not name its ``sizing`` is taken to be changed).
+def record_version(record: Mapping[str, Any], sizing: str | None = None) -> int:
+    """The :data:`METHOD_VERSION` a ``metrics.json``, ``done.json`` or checkpoint meta stands
+    for: the one it was made with (1 when it does not say: records older than the field),
+    carried over each later version that did not change runs of its ``sizing``
+    (:data:`VERSION_SCOPE`). A record that does not name its sizing is taken to be of
+    ``sizing`` (the running job's, for its own segments and checkpoints), else changed.
 
     >>> record_version({"method_version": 3, "sizing": "cpu_ngp"}), record_version(
-    ...     {"method_version": 3, "sizing": "cpu_nerf"})
-    (4, 3)
+    ...     {"method_version": 3, "sizing": "cpu_nerf"}), record_version(
+    ...     {"method_version": 3}, sizing="cpu_hexplane") > 3
+    (4, 3, True)
     """
     version = int(record.get("method_version") or 1)
+    sizing = record.get("sizing") or sizing
     while version < METHOD_VERSION:
-        scope = VERSION_SCOPE.get(version + 1)
-        if scope is None or record.get("sizing") is None or record["sizing"] in scope:
+        changed = VERSION_SCOPE.get(version + 1)
+        if changed is None or sizing is None or changed(str(sizing)):
             break
         version += 1
     return version
@@ -186,8 +201,9 @@ def stale_reason(record: Mapping[str, Any], data_id: str | None) -> tuple[str, s
     ``("method_v1", "trained by method version 1 (now 2)")`` or ``("data_<id>", "trained
     on <id> (now <data_id>)")``; ``None`` if it is current. A record that names no dataset
     predates the field and is taken to match, as is any record when ``data_id`` is
-    ``None`` (not known)."""
-    version = record_version(record)
+    ``None`` (not known). A record that does not name its sizing is taken to be of the
+    running job's (the Hydra choice; outside a Hydra app, of none)."""
+    version = record_version(record, sizing_choice())
     if version != METHOD_VERSION:
         return f"method_v{version}", f"trained by method version {version} (now {METHOD_VERSION})"
     made_on = record.get("data_id")
@@ -206,7 +222,7 @@ def write_done(seg_dir: str | Path, max_steps: int, steps: int, wall_s: float,
         "max_steps": int(max_steps), "steps": int(steps), "wall_s": float(wall_s),
         "nonfinite_steps": int(nonfinite_steps),
         "opacity_log": [[int(s), float(o)] for s, o in opacity_log],
-        "method_version": METHOD_VERSION, "data_id": data_id})
+        "method_version": METHOD_VERSION, "data_id": data_id, "sizing": sizing_choice()})
 
 
 def read_done(seg_dir: str | Path, max_steps: int | None = None,

@@ -70,7 +70,9 @@ class Run:
 
     @property
     def version(self) -> int:
-        """The training method's version the run was made with (``method_version``)."""
+        """The training method's version the run stands for: the ``method_version`` it was
+        made with, carried over later versions that did not change its sizing
+        (:func:`eventrecon.records.record_version`)."""
         return record_version(self.record)
 
     @property
