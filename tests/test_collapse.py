@@ -61,9 +61,10 @@ def test_a_forced_collapse_is_reported_as_collapsed(data_dir: Path, tmp_path: Pa
 
 
 def test_no_acc_keeps_its_density_with_the_faithful_defaults(data_dir: Path, tmp_path: Path):
-    """The CPU-size NeRF with the authors' initialisation and absolute sparsity ramp:
-    without L_acc the field keeps rendering something (the ramp compressed to the run made
-    L_sparsity ~100× stronger per step and collapsed this row)."""
+    """The CPU-size NeRF with the authors' initialisation and absolute sparsity ramp (and
+    the CPU sizing's betas^10): without L_acc the field keeps rendering something (the
+    ramp compressed to the run made L_sparsity ~100× stronger per step and collapsed this
+    row)."""
     cfg = tiny_config(data_dir, "loss=no_acc", "trainer.max_steps=120", "trainer.log_every=10",
                       "trainer.schedule=compressed", base=TINY)
     assert cfg.model.optim.lr == 1e-3 and cfg.loss.sparsity_ramp == 30000  # the CPU size

@@ -500,6 +500,20 @@ def test_a_version_that_changed_only_some_runs_leaves_the_others_current(tmp_pat
     assert found == {"hexplane": (4, True), "nerf": (3, False), "paper_ngp": (3, False),
                      "unnamed": (3, False)}
     assert records.record_version({"method_version": 2, "sizing": "cpu_hexplane"}) == 2
+    # a pair compares runs that trained as one version: the version-3 HexPlane record (it
+    # stands for 3 and 4) pairs with a version-3 and a version-4 NeRF; those two do not pair
+    from eventrecon.report.pairs import paired
+    nerf = {"sizing": "cpu_nerf"}
+    jobs = [_metrics("spheres", model="hexplane", psnr=25.0, seed=0, method_version=3,
+                     sizing="cpu_hexplane"),
+            _metrics("spheres", psnr=24.0, seed=0, method_version=3, **nerf),
+            _metrics("spheres", loss="no_event", psnr=22.0, seed=0, method_version=4, **nerf)]
+    runs = collect_runs([_sweep(tmp_path / "pairs", jobs, "table3").parent.parent])
+    full, hexplane = (lambda r: r.model == "nerf" and r.loss == "full"), (
+        lambda r: r.model == "hexplane")
+    no_event = lambda r: r.loss == "no_event"  # noqa: E731
+    assert [paired(runs, hexplane, b)[0].mean for b in (full, no_event)] == [1.0, 3.0]
+    assert paired(runs, full, no_event)[0] is None
     # a segment's done.json (or checkpoint) of version 3 names no sizing: it is the running
     # job's, so a CPU HexPlane job keeps its trained segment and a CPU NeRF job trains again
     records.write_done(tmp_path / "seg0", 1000, 1000, 10.0, 0, data_id="d")

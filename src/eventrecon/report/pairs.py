@@ -47,10 +47,11 @@ def paired(runs: Sequence[Run], a: Callable[[Run], bool], b: Callable[[Run], boo
 
 def _pairs(runs: Sequence[Run], a: Callable[[Run], bool], b: Callable[[Run], bool]
            ) -> list[tuple[tuple, Run, Run]]:
-    """``((scene, seed), run a, run b)`` for every pair of scored runs made with the same
-    method version."""
+    """``((scene, seed), run a, run b)`` for every pair of scored runs that trained as one
+    method version (:meth:`~eventrecon.report.runs.Run.shares_version`: a version-3 record
+    that version 4 did not change pairs with runs of either)."""
     ra, rb = _scored(runs, a), _scored(runs, b)
-    return [(k, ra[k], rb[k]) for k in ra.keys() & rb.keys() if ra[k].version == rb[k].version]
+    return [(k, ra[k], rb[k]) for k in ra.keys() & rb.keys() if ra[k].shares_version(rb[k])]
 
 
 def _paper_columns(runs: Sequence[Run], table: str, a: Callable[[Run], bool],

@@ -76,6 +76,18 @@ class Run:
         return record_version(self.record)
 
     @property
+    def versions(self) -> range:
+        """The method versions the run trained as: from the one it was made with to
+        :attr:`version`."""
+        return range(int(self.record.get("method_version") or 1), self.version + 1)
+
+    def shares_version(self, other: Run) -> bool:
+        """Whether both runs trained as one method version (so a pair of them compares
+        their settings, not a change of the method)."""
+        return max(self.versions.start, other.versions.start) <= min(self.version,
+                                                                        other.version)
+
+    @property
     def recency(self) -> tuple[int, float]:
         """``(version, mtime)``: of two runs of one job or seed, the greater one replaces
         the other (a newer method version first, then the later file)."""
