@@ -71,7 +71,8 @@ METHOD_VERSIONS: dict[int, str] = {
 
 
 def _v4_changed(sizing: str) -> bool:
-    """Version 4 changed the CPU NeRF and NGP at every size but the CPU's."""
+    """Version 4 changed the CPU NeRF (betas^10) and NGP at every size but the CPU's (the
+    authors' betas and eps; the CPU sizing names instant-NGP's, as before)."""
     return sizing == "cpu_nerf" or (sizing.endswith("_ngp") and sizing != "cpu_ngp")
 
 
