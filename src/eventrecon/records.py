@@ -45,9 +45,9 @@ from eventrecon.errors import InputError
 from eventrecon.naming import dataset_name, name_from_meta
 from eventrecon.precision import run_precision
 
-__all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "VERSION_SCOPE", "record_version", "stale_reason",
-           "METRICS_FILE", "CURVE_FILE", "DONE_FILE", "CURVE_HEADER", "REQUIRED_KEYS",
-           "STATUSES", "run_info", "sizing_choice",
+__all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "VERSION_SCOPE", "made_version",
+           "record_version", "stale_reason", "METRICS_FILE", "CURVE_FILE", "DONE_FILE",
+           "CURVE_HEADER", "REQUIRED_KEYS", "STATUSES", "run_info", "sizing_choice",
            "write_metrics", "read_metrics", "finished_metrics", "write_done", "read_done",
            "CurveLog", "read_curve_rows", "write_curve", "stitch_curves"]
 
@@ -174,11 +174,16 @@ def finished_metrics(path: str | Path, max_steps: int, evaluate: bool,
     return done if same and (not evaluate or done.get("psnr") is not None) else None
 
 
+def made_version(record: Mapping[str, Any]) -> int:
+    """The :data:`METHOD_VERSION` a record was made with (1 when it does not say: records
+    older than the field)."""
+    return int(record.get("method_version") or 1)
+
+
 def record_version(record: Mapping[str, Any], sizing: str | None = None) -> int:
     """The :data:`METHOD_VERSION` a ``metrics.json``, ``done.json`` or checkpoint meta stands
-    for: the one it was made with (1 when it does not say: records older than the field),
-    carried over each later version that did not change runs of its ``sizing``
-    (:data:`VERSION_SCOPE`). A record that does not name its sizing is taken to be of
+    for: the one it was made with (:func:`made_version`), carried over each later version
+    that did not change runs of its ``sizing`` (:data:`VERSION_SCOPE`). A record that does not name its sizing is taken to be of
     ``sizing`` (the running job's, for its own segments and checkpoints), else changed.
 
     >>> record_version({"method_version": 3, "sizing": "cpu_ngp"}), record_version(
@@ -186,7 +191,7 @@ def record_version(record: Mapping[str, Any], sizing: str | None = None) -> int:
     ...     {"method_version": 3}, sizing="cpu_hexplane") > 3
     (4, 3, True)
     """
-    version = int(record.get("method_version") or 1)
+    version = made_version(record)
     sizing = record.get("sizing") or sizing
     while version < METHOD_VERSION:
         changed = VERSION_SCOPE.get(version + 1)

@@ -25,6 +25,7 @@ from eventrecon.records import (
     CURVE_FILE,
     CURVE_HEADER,
     METRICS_FILE,
+    made_version,
     read_curve_rows,
     read_metrics,
     record_version,
@@ -79,7 +80,7 @@ class Run:
     def versions(self) -> range:
         """The method versions the run trained as: from the one it was made with to
         :attr:`version`."""
-        return range(int(self.record.get("method_version") or 1), self.version + 1)
+        return range(made_version(self.record), self.version + 1)
 
     def shares_version(self, other: Run) -> bool:
         """Whether both runs trained as one method version (so a pair of them compares
