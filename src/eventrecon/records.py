@@ -183,8 +183,9 @@ def made_version(record: Mapping[str, Any]) -> int:
 def record_version(record: Mapping[str, Any], sizing: str | None = None) -> int:
     """The :data:`METHOD_VERSION` a ``metrics.json``, ``done.json`` or checkpoint meta stands
     for: the one it was made with (:func:`made_version`), carried over each later version
-    that did not change runs of its ``sizing`` (:data:`VERSION_SCOPE`). A record that does not name its sizing is taken to be of
-    ``sizing`` (the running job's, for its own segments and checkpoints), else changed.
+    that did not change runs of its ``sizing`` (:data:`VERSION_SCOPE`). A record that does
+    not name its sizing is taken to be of ``sizing`` (the running job's, for its own
+    segments and checkpoints), else changed.
 
     >>> record_version({"method_version": 3, "sizing": "cpu_ngp"}), record_version(
     ...     {"method_version": 3, "sizing": "cpu_nerf"}), record_version(
