@@ -477,6 +477,30 @@ def test_a_newer_method_version_supersedes_its_job_and_a_mixed_table_says_so(tmp
     assert f"; 1 of version {METHOD_VERSION} (" in text
 
 
+def test_a_version_that_changed_a_default_supersedes_the_old_default_and_prunes_it(tmp_path):
+    from eventrecon.records import VERSION_KEYS
+    from eventrecon.report.runs import current_runs, prune_superseded, supersedes
+
+    assert VERSION_KEYS[4] == ("betas_power",)
+    v3 = {"method_version": 3, "sizing": "cpu_nerf"}
+    jobs = [_metrics("rig_lowlight", seed=5, psnr=24.0, **v3),             # 0: betas 1 (old)
+            _metrics("rig_lowlight", seed=5, psnr=25.0, method_version=4,  # 1: its re-run
+                     sizing="cpu_nerf", betas_power=10.0),
+            _metrics("rig_lowlight", seed=6, psnr=24.5, **v3),             # 2: not re-run
+            _metrics("rig_lowlight", seed=5, psnr=23.0, lr_warmup=50, **v3),  # 3: other job
+            _metrics("rig_lowlight", model="ngp", seed=5, method_version=3,   # 4: stands for 4
+                     sizing="cpu_ngp")]
+    sweep = _sweep(tmp_path, jobs, "table4")
+    runs = {r.path.name: r for r in collect_runs([sweep])}
+    assert supersedes(runs["1"], runs["0"]) and not supersedes(runs["0"], runs["1"])
+    assert not supersedes(runs["1"], runs["2"]) and not supersedes(runs["1"], runs["3"])
+    assert sorted(r.path.name for r in current_runs(runs.values())) == ["1", "2", "3", "4"]
+    # a committed copy loses the superseded record only; the others stay byte for byte
+    before = {p: p.read_bytes() for p in sweep.rglob("*.json") if p.parent.name != "0"}
+    assert prune_superseded(sweep) == [sweep / "0"]
+    assert not (sweep / "0" / "metrics.json").exists()
+    assert {p: p.read_bytes() for p in sweep.rglob("*.json")} == before
+
 def test_a_version_that_changed_only_some_runs_leaves_the_others_current(tmp_path,
                                                                           monkeypatch):
     from eventrecon import records

@@ -45,7 +45,7 @@ from eventrecon.errors import InputError
 from eventrecon.naming import dataset_name, name_from_meta
 from eventrecon.precision import run_precision
 
-__all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "VERSION_SCOPE", "made_version",
+__all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "VERSION_SCOPE", "VERSION_KEYS", "made_version",
            "record_version", "stale_reason", "METRICS_FILE", "CURVE_FILE", "DONE_FILE",
            "CURVE_HEADER", "REQUIRED_KEYS", "STATUSES", "run_info", "sizing_choice",
            "write_metrics", "read_metrics", "finished_metrics", "write_done", "read_done",
@@ -81,6 +81,10 @@ def _v4_changed(sizing: str) -> bool:
 #: file exists). A record of any other run made before it stands for that version too (it
 #: trains the same).
 VERSION_SCOPE: dict[int, Callable[[str], bool]] = {4: _v4_changed}
+#: Job keys (of a record's identity, :data:`eventrecon.report.runs.JOB_KEYS`) whose default
+#: a version changed: a run of that version supersedes an older run of the same job that
+#: differs from it only there (the old default), as a re-run of it does.
+VERSION_KEYS: dict[int, tuple[str, ...]] = {4: ("betas_power",)}
 
 METRICS_FILE = "metrics.json"
 CURVE_FILE = "curve.csv"

@@ -48,7 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument(
         "--copy-runs", metavar="DIR", default=None,
-        help="also copy every run's metrics.json and curve.csv below DIR (a committable record)"
+        help="also copy every current run's metrics.json and curve.csv below DIR (a committable "
+             "record) and delete the records there that newer runs of their job supersede"
     )
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -64,11 +65,12 @@ def main(argv: list[str] | None = None) -> int:
     if findings is not None:  # the report ends with the paper's claims, checked
         log.info("\n%s", findings.read_text())
     if args.copy_runs:
-        from eventrecon.report.runs import collect_runs, copy_runs, current_runs
+        from eventrecon.report.runs import collect_runs, copy_runs, current_runs, prune_superseded
 
         copied = copy_runs(current_runs(collect_runs(args.dirs)), args.dirs, args.copy_runs)
-        log.info("copied %d runs' metrics.json and curve.csv below %s", len(copied),
-                 args.copy_runs)
+        pruned = prune_superseded(args.copy_runs)
+        log.info("copied %d runs' metrics.json and curve.csv below %s (%d superseded pruned)",
+                 len(copied), args.copy_runs, len(pruned))
     return 0
 
 

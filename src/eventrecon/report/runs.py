@@ -25,6 +25,7 @@ from eventrecon.records import (
     CURVE_FILE,
     CURVE_HEADER,
     METRICS_FILE,
+    VERSION_KEYS,
     made_version,
     read_curve_rows,
     read_metrics,
@@ -167,17 +168,27 @@ JOB_KEYS: tuple[str, ...] = ("scene", "model", "loss", "views", "fps", "seed", "
 _JOB_DEFAULTS: dict[str, Any] = {"lr_end_factor": 1.0, "lr_warmup": 0, "betas_power": 1.0}
 
 
+def supersedes(new: Run, old: Run) -> bool:
+    """Whether ``new`` replaces ``old`` in the tables: a run of the same experiment and job
+    (:data:`JOB_KEYS`) made with a newer method version. The job keys whose default a
+    version after ``old``'s changed (:data:`eventrecon.records.VERSION_KEYS`) may differ:
+    a version-4 run with ``betas_power`` 10 replaces the version-3 run of its job, which
+    trained with the old default 1."""
+    if new.version <= old.version or new.experiment != old.experiment:
+        return False
+    free = {k for v in range(old.version + 1, new.version + 1) for k in VERSION_KEYS.get(v, ())}
+    return _job(new, free) == _job(old, free)
+
+
 def current_runs(runs: Iterable[Run]) -> list[Run]:
-    """The runs not superseded: a run is dropped when a run of the same job (its
-    experiment and :data:`JOB_KEYS`) was made with a newer ``method_version``
-    (:data:`eventrecon.records.METHOD_VERSION`), so a table never mixes a job's stale and
-    fresh records. Order is kept."""
+    """The runs not superseded (:func:`supersedes`), so a table never mixes a job's stale
+    and fresh records. Order is kept."""
     runs = list(runs)
-    newest: dict[tuple, int] = {}
+    free = {k for keys in VERSION_KEYS.values() for k in keys}
+    groups: dict[tuple, list[Run]] = {}
     for r in runs:
-        key = _job(r)
-        newest[key] = max(newest.get(key, 0), r.version)
-    kept = [r for r in runs if r.version == newest[_job(r)]]
+        groups.setdefault(_job(r, free), []).append(r)
+    kept = [r for r in runs if not any(supersedes(s, r) for s in groups[_job(r, free)])]
     if len(kept) < len(runs):
         log.info("%d run(s) superseded by a newer method version of the same job",
                  len(runs) - len(kept))
@@ -198,8 +209,10 @@ def versions_markdown(runs: Iterable[Run]) -> str:
     return "## Runs by method version\n\n" + "\n".join(lines) + "\n" if lines else ""
 
 
-def _job(r: Run) -> tuple:
-    return (r.experiment, *(str(r.record.get(k, _JOB_DEFAULTS.get(k))) for k in JOB_KEYS))
+def _job(r: Run, skip: set[str] | frozenset[str] = frozenset()) -> tuple:
+    """``r``'s experiment and :data:`JOB_KEYS` values (``None`` for the keys in ``skip``)."""
+    return (r.experiment, *(None if k in skip else str(r.record.get(k, _JOB_DEFAULTS.get(k)))
+                            for k in JOB_KEYS))
 
 
 def copy_runs(runs: Iterable[Run], roots: Iterable[str | Path], dest: str | Path) -> list[Path]:
@@ -221,6 +234,25 @@ def copy_runs(runs: Iterable[Run], roots: Iterable[str | Path], dest: str | Path
                 shutil.copy2(src / name, target / name)
         out.append(target)
     return out
+
+
+def prune_superseded(dest: str | Path) -> list[Path]:
+    """Delete the records below ``dest`` (a :func:`copy_runs` copy) that newer runs of their
+    job supersede (:func:`current_runs`): their ``metrics.json`` and ``curve.csv``, and the
+    folder once empty. Returns the folders pruned (git history keeps committed records)."""
+    runs = collect_runs([dest])
+    kept = {id(r) for r in current_runs(runs)}
+    pruned = []
+    for run in runs:
+        if id(run) in kept:
+            continue
+        for name in (METRICS_FILE, CURVE_FILE):
+            (run.path / name).unlink(missing_ok=True)
+        if not any(run.path.iterdir()):
+            run.path.rmdir()
+        log.info("pruned %s: superseded by a newer method version of its job", run.path)
+        pruned.append(run.path)
+    return pruned
 
 
 def read_curve(folder: str | Path) -> dict[str, np.ndarray]:
