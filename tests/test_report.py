@@ -700,23 +700,27 @@ def test_sweep_costs_sum_the_current_versions_job_times_and_price_the_older_runs
     v = {"method_version": METHOD_VERSION}
     t3 = [_metrics("spheres", seed=0, total_s=120.0, **v),
           _metrics("lego", seed=0, total_s=300.0, **v),
-          _metrics("dress", seed=0, total_s=600.0, **v),   # median 300 s, sum 1020 s
-          _metrics("blender", seed=0, total_s=90.0),        # version 1: owed at 300 s
-          _metrics("blender", seed=1, total_s=90.0)]
-    t7 = [_metrics("spheres", views=2, seed=0, total_s=200.0),   # only older runs:
-          _metrics("spheres", views=3, seed=0, total_s=400.0)]   # owed at their own median
+          _metrics("dress", seed=0, total_s=600.0, **v),   # NeRF: median 300 s
+          _metrics("dress", model="ngp", seed=0, total_s=60.0, **v),  # all: median 210 s
+          _metrics("blender", seed=0, total_s=90.0),        # version 1: owed at 300 s,
+          _metrics("blender", seed=1, total_s=90.0)]        # its sweep's NeRF median
+    t7 = [_metrics("spheres", views=2, seed=0, total_s=200.0),   # only older runs: NeRF's
+          _metrics("spheres", views=3, seed=0, total_s=400.0),   # median in any sweep (300)
+          _metrics("spheres", model="ngp", seed=0, total_s=10.0),        # NGP's (60)
+          _metrics("spheres", model="hexplane", seed=0, total_s=500.0),  # no current
+          _metrics("spheres", model="hexplane", seed=1, total_s=700.0)]  # one: own (600)
     runs = current_runs(collect_runs([_sweep(tmp_path / "a", t3, "table3").parent.parent,
                                       _sweep(tmp_path / "b", t7, "table7").parent.parent]))
     c3, c7 = sweep_costs(runs)
     assert (c3.experiment, c3.runs, c3.median_s, c3.total_s, c3.stale) == (
-        "table3", 3, 300.0, 1020.0, 2)
-    assert c3.wall_s == pytest.approx(510.0) and c3.owed_s == pytest.approx(300.0)
-    assert (c7.runs, c7.total_s, c7.stale) == (0, 0.0, 2) and math.isnan(c7.median_s)
-    assert c7.owed_s == pytest.approx(2 * 300.0 / 2)
+        "table3", 4, 210.0, 1080.0, 2)
+    assert c3.wall_s == pytest.approx(540.0) and c3.owed_s == pytest.approx(2 * 300.0 / 2)
+    assert (c7.runs, c7.total_s, c7.stale) == (0, 0.0, 5) and math.isnan(c7.median_s)
+    assert c7.owed_s == pytest.approx((2 * 300.0 + 60.0 + 2 * 600.0) / 2)
     md = sweep_costs_markdown([c3, c7])
-    assert "| `table3` | 3 | 5.0 | 0.28 | 0.14 | 2 | 0.08 |" in md
-    assert "| `table7` | 0 | — | 0.00 | 0.00 | 2 | 0.08 |" in md
-    assert "| all | 3 |  | 0.28 | 0.14 | 4 | 0.17 |" in md
+    assert "| `table3` | 4 | 3.5 | 0.30 | 0.15 | 2 | 0.08 |" in md
+    assert "| `table7` | 0 | — | 0.00 | 0.00 | 5 | 0.26 |" in md
+    assert "| all | 4 |  | 0.30 | 0.15 | 7 | 0.34 |" in md
     assert sweep_costs_markdown([]) == ""
     # a record without total_s counts its training time
     old = _metrics("spheres", seed=0, **v)

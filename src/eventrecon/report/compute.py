@@ -12,8 +12,10 @@ For each experiment, over the runs made with the current
   in ``docs/results``: two one-thread jobs on the two cores, so each job's time already
   includes sharing the machine);
 - the runs still of an older method version (``k``, to be re-run) and what re-running
-  them would take at the same median, ``k · m / lanes`` (at the older runs' own median
-  while no current run gives one).
+  them would take, ``Σ m_r / lanes``: each priced at the median job time of the current
+  runs of its experiment and model, else of its model in any experiment (a backbone's
+  job time differs far more between backbones than between experiments), else at the
+  median of its experiment's older runs of that model.
 """
 
 from __future__ import annotations
@@ -41,22 +43,13 @@ class SweepCost:
     median_s: float      # their median job time (nan when runs == 0)
     total_s: float       # the sum of their job times
     stale: int           # runs of an older method version, to be re-run
-    stale_median_s: float = float("nan")   # the older runs' median job time
+    owed_s: float = 0.0  # re-running them on ``lanes`` lanes (module docstring)
     lanes: int = LANES
 
     @property
     def wall_s(self) -> float:
         """The current-version runs' sweep time on ``lanes`` lanes: ``total_s / lanes``."""
         return self.total_s / self.lanes
-
-    @property
-    def owed_s(self) -> float:
-        """Re-running the stale runs: ``stale · median_s / lanes``, with the older runs'
-        median where there is no current one (0 when nothing is stale)."""
-        if not self.stale:
-            return 0.0
-        median = self.median_s if self.runs else self.stale_median_s
-        return self.stale * median / self.lanes
 
 
 def job_seconds(run: Run) -> float | None:
@@ -71,19 +64,35 @@ def job_seconds(run: Run) -> float | None:
 def sweep_costs(runs: Iterable[Run], lanes: int = LANES) -> list[SweepCost]:
     """One :class:`SweepCost` per experiment of ``runs`` (the report's current runs),
     sorted by name."""
-    times: dict[str, list[float]] = {}
-    older: dict[str, list[float | None]] = {}
+    current: dict[tuple[str, str], list[float]] = {}   # (experiment, model) -> job times
+    older: dict[tuple[str, str], list[float]] = {}
+    stale: dict[tuple[str, str], int] = {}
     for r in runs:
-        exp = r.experiment or "(no experiment)"
-        times.setdefault(exp, [])
-        older.setdefault(exp, [])
+        key = (r.experiment or "(no experiment)", r.model)
+        current.setdefault(key, [])
+        t = job_seconds(r)
         if r.version != METHOD_VERSION:
-            older[exp].append(job_seconds(r))
-        elif (t := job_seconds(r)) is not None:
-            times[exp].append(t)
-    return [SweepCost(exp, len(ts), _median(ts), sum(ts), len(older[exp]),
-                      _median([t for t in older[exp] if t is not None]), lanes)
-            for exp, ts in sorted(times.items())]
+            stale[key] = stale.get(key, 0) + 1
+            older.setdefault(key, []).extend([] if t is None else [t])
+        elif t is not None:
+            current[key].append(t)
+    by_model: dict[str, list[float]] = {}
+    for (_, model), ts in current.items():
+        by_model.setdefault(model, []).extend(ts)
+
+    def price(key: tuple[str, str]) -> float:
+        for ts in (current[key], by_model[key[1]], older.get(key, [])):
+            if ts:
+                return statistics.median(ts)
+        return float("nan")
+
+    out = []
+    for exp in sorted({e for e, _ in current}):
+        ts = [t for (e, _), v in current.items() if e == exp for t in v]
+        owed = sum(n * price(k) for k, n in stale.items() if k[0] == exp)
+        out.append(SweepCost(exp, len(ts), _median(ts), sum(ts), sum(
+            n for k, n in stale.items() if k[0] == exp), owed / lanes, lanes))
+    return out
 
 
 def _median(values: list[float]) -> float:
@@ -111,6 +120,7 @@ def sweep_costs_markdown(costs: list[SweepCost]) -> str:
             f"{METHOD_VERSION} run. {lanes} lanes: one-thread jobs side by side on the 2 "
             "cores, as the sweeps run, so each job's time includes the sharing. A job "
             "resumed after a kill counts its last process only. Older runs: records of an "
-            "earlier method version, re-run at the current runs' median job time (the older "
-            "runs' own median where there is no current run).")
+            "earlier method version, each re-run at the median job time of the current runs "
+            "of its sweep and backbone (of its backbone in any sweep where its sweep has "
+            "none; the older runs' own median where no current run of its backbone exists).")
     return f"## What the sweeps cost\n\n{markdown_table(header, rows)}\n\n- {note}\n"
