@@ -501,6 +501,7 @@ def test_a_version_that_changed_a_default_supersedes_the_old_default_and_prunes_
     assert not (sweep / "0" / "metrics.json").exists()
     assert {p: p.read_bytes() for p in sweep.rglob("*.json")} == before
 
+
 def test_a_version_that_changed_only_some_runs_leaves_the_others_current(tmp_path,
                                                                           monkeypatch):
     from eventrecon import records

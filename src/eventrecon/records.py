@@ -83,7 +83,7 @@ def _v4_changed(sizing: str) -> bool:
 VERSION_SCOPE: dict[int, Callable[[str], bool]] = {4: _v4_changed}
 #: Job keys (of a record's identity, :data:`eventrecon.report.runs.JOB_KEYS`) whose default
 #: a version changed: a run of that version supersedes an older run of the same job that
-#: differs from it only there (the old default), as a re-run of it does.
+#: differs from it only in those keys (it trained with the old default), as a re-run does.
 VERSION_KEYS: dict[int, tuple[str, ...]] = {4: ("betas_power",)}
 
 METRICS_FILE = "metrics.json"
