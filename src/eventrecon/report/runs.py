@@ -174,7 +174,7 @@ def supersedes(new: Run, old: Run) -> bool:
     version after ``old``'s changed (:data:`eventrecon.records.VERSION_KEYS`) may differ:
     a version-4 run with ``betas_power`` 10 replaces the version-3 run of its job, which
     trained with the old default 1."""
-    if new.version <= old.version or new.experiment != old.experiment:
+    if new.version <= old.version:
         return False
     free = {k for v in range(old.version + 1, new.version + 1) for k in VERSION_KEYS.get(v, ())}
     return _job(new, free) == _job(old, free)
@@ -185,10 +185,11 @@ def current_runs(runs: Iterable[Run]) -> list[Run]:
     and fresh records. Order is kept."""
     runs = list(runs)
     free = {k for keys in VERSION_KEYS.values() for k in keys}
+    keys = [_job(r, free) for r in runs]
     groups: dict[tuple, list[Run]] = {}
-    for r in runs:
-        groups.setdefault(_job(r, free), []).append(r)
-    kept = [r for r in runs if not any(supersedes(s, r) for s in groups[_job(r, free)])]
+    for r, key in zip(runs, keys):
+        groups.setdefault(key, []).append(r)
+    kept = [r for r, key in zip(runs, keys) if not any(supersedes(s, r) for s in groups[key])]
     if len(kept) < len(runs):
         log.info("%d run(s) superseded by a newer method version of the same job",
                  len(runs) - len(kept))
