@@ -234,7 +234,9 @@ def test_backbones_at_equal_training_time_pair_the_runs_of_a_scene_and_seed(tmp_
             base = 20.0 + seed + (scene == "lego")
             for model, at60, end in (("nerf", base, base + 3), ("ngp", base + 1,
                                                                 base + 3 - 0.5 - seed)):
-                write_run(sweep / str(k), _metrics(scene, model=model, psnr=end, seed=seed),
+                named = {"machine": "CPU A ×2"} if model == "nerf" else {}
+                write_run(sweep / str(k), _metrics(scene, model=model, psnr=end, seed=seed,
+                                                   **named),
                           _curve([30.0, 59.0, 61.0], [base - 2, at60, 99.0],
                                  ["cheap", "full", "cheap"]))
                 k += 1
@@ -245,6 +247,10 @@ def test_backbones_at_equal_training_time_pair_the_runs_of_a_scene_and_seed(tmp_
     assert rows["nerf"]["scored / runs"] == "4 / 4" and rows["hexplane"]["scored / runs"] == "0 / 1"
     # within 10 s: no evaluation yet; within 60 s: the 59 s row, never the 61 s one
     assert rows["nerf"]["PSNR within 10 s"] == "—"
+    # the machines of the scored runs: named in the nerf records, absent from the ngp ones
+    assert rows["nerf"]["machines (scored runs)"] == "CPU A ×2 (4)"
+    assert rows["ngp"]["machines (scored runs)"] == "not recorded (4)"
+    assert rows["hexplane"]["machines (scored runs)"] == "—"
     assert rows["nerf"]["PSNR within 60 s"].startswith("21.00 ± ")
     assert rows["ngp"]["PSNR within 60 s"].startswith("22.00 ± ")
     diff = md.split("| backbone − nerf")[1]

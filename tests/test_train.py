@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 from pathlib import Path
 
@@ -19,6 +20,7 @@ from eventrecon.data import selection
 from eventrecon.data.batcher import Segment
 from eventrecon.errors import InputError
 from eventrecon.losses import total_loss
+from eventrecon.machine import machine_name
 from eventrecon.module import step_generator
 from eventrecon.records import stitch_curves
 from eventrecon.segments import segment_config, segment_steps
@@ -78,6 +80,7 @@ def test_200_steps_lower_the_loss_and_beat_a_constant_colour(data_dir: Path, tmp
     assert metrics["steps"] == 200 and metrics["status"] == "ok"
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["psnr"] == pytest.approx(metrics["psnr"])
+    assert saved["machine"] == machine_name() and saved["machine"].endswith(f"×{os.cpu_count()}")
     assert (tmp_path / "renders" / f"{val.cameras.names[0]}.gif").stat().st_size > 0
 
 

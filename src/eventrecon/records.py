@@ -8,7 +8,8 @@ A run folder holds
   from the paper's method: ``schedule``, ``skip``, ``sizing``) and, once
   evaluated, ``psnr, ssim, lpips`` (``lpips`` may be null with an ``lpips_note``),
   ``psnr_background`` (the empty field's score on the same frames), ``wall_s``,
-  ``steps``, ``sec_per_it``, ``peak_mem_mb``, ``total_s``. ``status`` is one of
+  ``steps``, ``sec_per_it``, ``peak_mem_mb``, ``total_s``, ``machine``
+  (:mod:`eventrecon.machine`). ``status`` is one of
   :data:`STATUSES`: ``ok``; ``collapsed`` (the field renders the empty scene,
   :mod:`eventrecon.collapse`, with ``collapse_reason``); ``failed`` (with ``error``);
   ``partial`` (some segments of a ``data.segment=K`` sweep are still to train; never

@@ -40,6 +40,7 @@ from eventrecon.data.types import SplitData
 from eventrecon.errors import InputError
 from eventrecon.evaluate import evaluate_models, run_device
 from eventrecon.locks import exclusive
+from eventrecon.machine import machine_name
 from eventrecon.memory import peak_mb, reset_peak
 from eventrecon.module import EventNeRFModule
 from eventrecon.precision import run_precision
@@ -279,6 +280,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
             log.warning("run collapsed to the empty field: %s", reason)
         _log_final(cfg, out_dir, metrics)
         metrics["peak_mem_mb"] = peak_mb(cuda=device.type == "cuda")
+        metrics["machine"] = machine_name(cuda=device.type == "cuda")
         metrics["total_s"] = time.perf_counter() - t_start
         records.write_metrics(out_dir, metrics)
     return metrics

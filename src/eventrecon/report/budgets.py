@@ -36,7 +36,7 @@ from eventrecon.report.pairs import paired
 from eventrecon.report.runs import MODELS, Run, run_curve
 from eventrecon.report.stats import MeanCI, mean_ci
 
-__all__ = ["DEFAULT_BUDGETS", "psnr_within", "budget_markdown"]
+__all__ = ["DEFAULT_BUDGETS", "psnr_within", "machines_cell", "budget_markdown"]
 
 #: Training wall-clock budgets (seconds) of the per-backbone comparison.
 DEFAULT_BUDGETS: tuple[float, ...] = (60.0, 120.0, 180.0)
@@ -73,6 +73,20 @@ def _cell(m: MeanCI | None, signed: bool = False) -> str:
     return f"{text} ({m.n})"
 
 
+def machines_cell(runs: Sequence[Run]) -> str:
+    """The machines ``runs`` trained on (``machine`` in their records), each with its run
+    count, most runs first; records that do not name one count as ``not recorded``.
+
+    A wall-clock comparison between backbones is like for like only where this cell
+    names one machine for both."""
+    counts: dict[str, int] = {}
+    for r in runs:
+        name = str(r.record.get("machine") or "not recorded")
+        counts[name] = counts.get(name, 0) + 1
+    return "; ".join(f"{name} ({n})" for name, n in
+                     sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))) or DASH
+
+
 def budget_markdown(runs: Sequence[Run], budgets: Sequence[float] = DEFAULT_BUDGETS,
                     reference: str = "nerf") -> str:
     """Markdown: per backbone, held-out PSNR within each training budget and at the end
@@ -94,13 +108,14 @@ def budget_markdown(runs: Sequence[Run], budgets: Sequence[float] = DEFAULT_BUDG
         rows.append([m, f"{len(mine)} / {sum(r.model == m for r in runs)}",
                      fmt(float(np.median(spi)) if spi else None, 3)]
                     + [_cell(mean_ci([v for r in mine if (v := f(r)) is not None]))
-                       for f in values])
+                       for f in values] + [machines_cell(mine)])
         if m != reference and reference in models:
             diffs.append([m] + [_cell(paired(runs, lambda r, m=m: r.model == m,
                                              lambda r: r.model == reference, f)[0], True)
                                 for f in values])
     text = ("### Per backbone, at equal training time\n\n"
-            + markdown_table(["backbone", "scored / runs", "median s/it"] + totals, rows)
+            + markdown_table(["backbone", "scored / runs", "median s/it"] + totals
+                             + ["machines (scored runs)"], rows)
             + "\n")
     if diffs:
         text += ("\n" + markdown_table([f"backbone − {reference}"] + heads, diffs) + "\n")
@@ -110,6 +125,8 @@ def budget_markdown(runs: Sequence[Run], budgets: Sequence[float] = DEFAULT_BUDG
         "scene × seed; end of training: `metrics.json` (equal steps).\n"
         f"- backbone − {reference}: paired over (scene, seed) of one method version; bold: "
         "the interval excludes zero. Wall-clock is each job's own (two one-thread jobs side "
-        "by side; a table's jobs may come from sessions on machines of different speed: "
-        "compare the median s/it).\n")
+        "by side). A table's jobs may come from sessions on machines of different speed: "
+        "its wall-clock columns compare backbones only where their machines (the CPU or "
+        "GPU in each record; older records do not name it) are one; the end of training "
+        "(equal steps) compares them on any.\n")
     return text
