@@ -26,6 +26,7 @@ True
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -79,10 +80,7 @@ def machines_cell(runs: Sequence[Run]) -> str:
 
     A wall-clock comparison between backbones is like for like only where this cell
     names one machine for both."""
-    counts: dict[str, int] = {}
-    for r in runs:
-        name = str(r.record.get("machine") or "not recorded")
-        counts[name] = counts.get(name, 0) + 1
+    counts = Counter(str(r.record.get("machine") or "not recorded") for r in runs)
     return "; ".join(f"{name} ({n})" for name, n in
                      sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))) or DASH
 
