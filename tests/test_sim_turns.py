@@ -3,11 +3,20 @@ turns, sub-µs timestamps on a sliding grating, and the time merge equal to a so
 
 from __future__ import annotations
 
+import gc
+
 import numpy as np
 import pytest
 
 from eventrecon.sim import compiled_core
-from eventrecon.sim.ideal import CoreSettings, SignalSetup, crossings, frame_events, run_core
+from eventrecon.sim.ideal import (
+    CoreSettings,
+    SignalSetup,
+    _finite,
+    crossings,
+    frame_events,
+    run_core,
+)
 from eventrecon.sim.merge import CHUNK, merge_by_time, time_order
 
 T_S = 0.5                                     # the grating's duration in seconds
@@ -194,8 +203,13 @@ def test_compiled_engine_gives_the_numpy_engines_events_bit_for_bit(case, monkey
     s.engine = "numpy"
     ref = run_core(sig, np.arange(P), setup, s)
     s.engine = "compiled"
-    for drop in (compiled_core.DROP, 0.0, 1.0):       # finished pixels kept to the end, or
-        monkeypatch.setattr(compiled_core, "DROP", drop)   # dropped at once (numpy's way)
+    # finished pixels dropped lazily, kept to the end or dropped at once (numpy's way);
+    # the signal called in blocks of 97, as one call (this grating's iterations hold fewer
+    # samples than the default block) or in blocks of 1000
+    for drop, batch in ((compiled_core.DROP, 97), (0.0, compiled_core.SIGNAL_BATCH),
+                        (1.0, 1000)):
+        monkeypatch.setattr(compiled_core, "DROP", drop)
+        monkeypatch.setattr(compiled_core, "SIGNAL_BATCH", batch)
         res = run_core(sig, np.arange(P), setup, s)
         for f in "gtp":                               # same events, same order, same bits
             np.testing.assert_array_equal(getattr(res, f), getattr(ref, f))
@@ -227,6 +241,47 @@ def test_a_non_finite_signal_is_one_clear_error(engine):
     with pytest.raises(ValueError, match=r"non-finite value.*pixel 3, t = 0\.5.*expected "
                                          r"finite"):
         run_core(sig, np.arange(5), _setup(5, 0.5), CoreSettings(engine=engine))
+
+
+def test_a_finite_signal_whose_sum_overflows_is_not_mistaken_for_a_non_finite_one():
+    # the finiteness check sums the batch first; an overflowing sum of finite values must
+    # fall through to the elementwise check and pass
+    L = np.array([1.5e308, 1.5e308, -3.0])
+    with np.errstate(over="ignore"):
+        assert not np.isfinite(L.sum())
+    out = _finite(lambda g, t: L.copy())(np.arange(3), np.zeros(3))
+    np.testing.assert_array_equal(out, L)
+    with pytest.raises(ValueError, match=r"1 non-finite value\(s\), first inf at pixel 1"):
+        _finite(lambda g, t: np.array([0.0, np.inf, 1.0]))(np.arange(3), np.zeros(3))
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_the_core_runs_without_the_cycle_collector_and_restores_it(engine):
+    # gc_paused: off while the core runs (the signal sees it off), back on after, also when
+    # the signal raises; a collector the caller disabled stays disabled
+    pytest.importorskip("numba")
+    seen = []
+
+    def sig(g, t):
+        seen.append(gc.isenabled())
+        return np.sin(9 * t + g)
+
+    assert gc.isenabled()
+    res = run_core(sig, np.arange(6), _setup(6, 0.5), CoreSettings(engine=engine))
+    assert res.t.size > 0 and seen and not any(seen) and gc.isenabled()
+
+    def bad(g, t):
+        raise RuntimeError("renderer failed")
+
+    with pytest.raises(RuntimeError, match="renderer failed"):
+        run_core(bad, np.arange(6), _setup(6, 0.5), CoreSettings(engine=engine))
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        run_core(sig, np.arange(6), _setup(6, 0.5), CoreSettings(engine=engine))
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
 
 
 def test_a_jump_larger_than_the_first_event_chunk_grows_it():

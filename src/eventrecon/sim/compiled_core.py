@@ -8,7 +8,7 @@ the signal stays a vectorised numpy call. One iteration is
 
 1. :func:`_plan` -- each pixel's next block of sample times (``h, 2h, …`` or ``h, 2h,
    4h, …``, clipped at ``t = 1``), flattened;
-2. ``signal(g, t)`` on all of them at once;
+2. ``signal(g, t)`` on all of them, in cache-sized blocks (:data:`SIGNAL_BATCH`);
 3. :func:`_step` -- per pixel: the accepted prefix (``|ΔL| ≤ β`` and
    ``|Δ²L| ≤ max_curvature·β``), the next step and block length, then the path
    ``s_{−2}, s_{−1}, s_0, new samples`` and its smooth turns. A pixel with no turn that
@@ -55,6 +55,11 @@ from eventrecon.sim.core_settings import STEP_TARGET
 from eventrecon.sim.jit import AVAILABLE, njit, njit_borrowing, njit_inline
 
 __all__ = ["AVAILABLE", "run_compiled"]
+
+#: Samples per call of the signal: its passes (gathers, arithmetic, ``sin``, ``log``) then
+#: run on blocks that stay in the core's L2 cache between passes instead of streaming the
+#: whole iteration's samples (about 0.7 M at first) through memory once per pass.
+SIGNAL_BATCH = 1 << 15
 
 #: Finished pixels are dropped from the state once fewer than this share still runs; until
 #: then they only skip their turn in :func:`_plan` and :func:`_step`.
@@ -263,6 +268,21 @@ def _commit_turned(a, tr_i, tr_tb, tr_Lb, tr_moved, tr_gap, Wt, WL, wlen, wdone,
     return K, n
 
 
+def _in_batches(signal: Callable, g: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``signal(g, t)`` (``[N]`` each) called on consecutive blocks of at most
+    :data:`SIGNAL_BATCH` samples. The signal is elementwise (a sample's value depends on
+    its own pixel and time only, as the core's other calls on any subset already assume),
+    so the values are those of one call."""
+    n = t.size
+    if n <= SIGNAL_BATCH:
+        return signal(g, t)
+    L = np.empty(n)
+    for a in range(0, n, SIGNAL_BATCH):
+        e = min(a + SIGNAL_BATCH, n)
+        L[a:e] = signal(g[a:e], t[a:e])
+    return L
+
+
 def _scratch(M: int, K: int = 0) -> tuple[np.ndarray, ...]:
     """Scratch space of :func:`_step` (``K = 0``) or of :func:`_commit_turned` for ``K``
     turns, which allocate nothing themselves (:func:`~eventrecon.sim.jit.njit_borrowing`)."""
@@ -320,7 +340,7 @@ def run_compiled(signal: Callable, pix: np.ndarray, setup, s, stats: dict
     while pix.size:
         it += 1
         G, T, start, n_valid, odd = _plan(pix, st_t[:, 2], h, grow, m, M, s.max_step)
-        L = signal(G, T)
+        L = _in_batches(signal, G, T)
         stats["n_samples"] += T.size
         i, K = 0, 0
         while True:

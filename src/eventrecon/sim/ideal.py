@@ -46,6 +46,7 @@ import numpy as np
 
 from eventrecon.sim import compiled_core
 from eventrecon.sim.core_settings import STEP_TARGET, CoreSettings, SignalSetup
+from eventrecon.sim.gc_pause import gc_paused
 from eventrecon.sim.merge import merge_by_time, time_order
 from eventrecon.sim.paths import PathState, commit
 
@@ -292,6 +293,9 @@ def _finite(signal: SignalFn) -> SignalFn:
     crossing is defined there; an infinite one would never stop emitting)."""
     def checked(g: np.ndarray, t: np.ndarray) -> np.ndarray:
         L = signal(g, t)
+        with np.errstate(over="ignore"):         # one pass: NaN and ±inf carry into the
+            if np.isfinite(np.add.reduce(L, axis=None)):   # sum (an overflow of finite
+                return L                                    # values: checked below)
         bad = np.flatnonzero(~np.isfinite(L))
         if bad.size:
             k = bad[0]
@@ -375,13 +379,15 @@ def run_core(signal: SignalFn, pix: np.ndarray, setup: SignalSetup, settings: Co
     stats = {"n_samples": 0, "n_forced": 0, "turn_samples": 0}
     signal = _finite(signal)
     _check_thresholds(setup)
-    if _compiled(settings, setup, busy, record_samples):
-        out, it = compiled_core.run_compiled(signal, pix, setup, settings, stats)
-        rec = None
-    else:
-        out, rec, it = _run_numpy(signal, pix, setup, settings, busy, record_samples, stats)
-    g, t, p = merge_by_time(out) if out else (np.zeros(0, np.int64), np.zeros(0),
-                                              np.zeros(0, np.int8))
+    with gc_paused():
+        if _compiled(settings, setup, busy, record_samples):
+            out, it = compiled_core.run_compiled(signal, pix, setup, settings, stats)
+            rec = None
+        else:
+            out, rec, it = _run_numpy(signal, pix, setup, settings, busy, record_samples,
+                                      stats)
+        g, t, p = merge_by_time(out) if out else (np.zeros(0, np.int64), np.zeros(0),
+                                                  np.zeros(0, np.int8))
     samples = None
     if rec is not None:
         samples = tuple(np.concatenate([r[i] for r in rec]) for i in range(3))
