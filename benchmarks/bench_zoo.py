@@ -29,8 +29,15 @@ For every backbone (``nerf``, ``ngp``, ``tensorf_cp``, ``hexplane``) and every
    not in the real step); and the **samples per ray** reaching the field (field inputs
    of a real step / (3 · n_rays): every ray is rendered at t0, t1 and t_ref).
 
+4. **Time to the reference PSNR** (issue 12: each backbone at its 1000-step ``scale=cpu``
+   PSNR in ≤ ⅓ of the time): the ``skip=none`` run's PSNR at step ``--ref-step`` (1000, the
+   preset's length) and the training time it took, then the time the ``skip=grid`` run
+   first reaches that PSNR. Both read the curve as the median of its last five points
+   (:func:`eventrecon.report.curves.time_to_level`); single points scatter by ~0.5 dB.
+
 The result is a Markdown table (logged; ``--out FILE`` writes it, ``--json FILE`` the raw
-rows) and a second table of ratios ``none / grid`` measured in the same run. Runs go to a
+rows, each run's held-out curve included), a second table of ratios ``none / grid``
+measured in the same run and a third of the times to the reference PSNR. Runs go to a
 temporary folder (``--work-dir``; removed unless ``--keep``). The default budgets are a
 quick check (a few minutes per backbone); the issue's figures are ``--budgets 60 180 600``.
 """
@@ -48,12 +55,14 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from benchmarks.zoo_run import STATS_FILE, compose_run, time_render, time_steps
 from eventrecon import build, runner
 from eventrecon.data.selection import training_split
 from eventrecon.records import read_curve_rows
+from eventrecon.report.curves import time_to_level, trailing_median
 from eventrecon.segments import run_segments, run_window
 
 log = logging.getLogger("benchmarks.zoo")
@@ -98,6 +107,7 @@ def bench_one(name: str, skip: str, args: argparse.Namespace, work: Path) -> dic
                            "updates_s": float(stats["update_s"])}
     for b, (p, s) in psnr_at(out_dir / "curve.csv", args.budgets).items():
         row[f"psnr@{b:g}"], row[f"step@{b:g}"] = p, s
+    row["curve"] = cheap_curve(out_dir / "curve.csv")
     # the trained state, back from the run's last checkpoint
     ds = build.load_dataset(cfg)
     props = build.scene_properties(cfg, ds)
@@ -116,12 +126,52 @@ def bench_one(name: str, skip: str, args: argparse.Namespace, work: Path) -> dic
     return row
 
 
+def cheap_curve(curve: Path) -> dict[str, list[float]]:
+    """The run's held-out curve points of one kind (``cheap``: the same pixels at every
+    point), in time order: ``{"wall_s": […], "step": […], "psnr": […]}``."""
+    rows = read_curve_rows(curve) if curve.exists() else []
+    rows = sorted((r for r in rows if r["kind"] == "cheap" and r["psnr"]),
+                  key=lambda r: (float(r["wall_s"]), int(r["step"])))
+    return {"wall_s": [float(r["wall_s"]) for r in rows],
+            "step": [float(r["step"]) for r in rows],
+            "psnr": [float(r["psnr"]) for r in rows]}
+
+
+def reference_time(none: dict[str, list[float]], grid: dict[str, list[float]],
+                   ref_step: int, window: int = 5) -> dict[str, float | None]:
+    """``skip=none``'s PSNR at its first curve point at or after ``ref_step`` (the median of
+    its last ``window`` points, :func:`~eventrecon.report.curves.trailing_median`) and the
+    training time to it, and the time ``skip=grid`` first reaches that PSNR (the same way);
+    ``None`` where a curve never gets there."""
+    out: dict[str, float | None] = {"psnr": None, "none_s": None, "grid_s": None}
+    steps = np.asarray(none["step"], float)
+    at = np.flatnonzero(steps >= ref_step)
+    if at.size:
+        out["psnr"] = float(trailing_median(np.asarray(none["psnr"]), window)[at[0]])
+        out["none_s"] = float(none["wall_s"][at[0]])
+        out["grid_s"] = time_to_level(np.asarray(grid["wall_s"]), np.asarray(grid["psnr"]),
+                                      out["psnr"], window)
+    return out
+
+
 def _f(v: float | None, fmt: str) -> str:
     return "—" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
 
 
-def markdown(rows: list[dict[str, Any]], budgets: list[float], meta: dict[str, Any]) -> str:
-    """The results table, the ``none / grid`` ratio table and a line of run settings."""
+def _pairs(rows: list[dict[str, Any]]) -> list[tuple[str, dict[str, Any], dict[str, Any]]]:
+    """``(backbone, none row, grid row)`` of every backbone run in both modes."""
+    out = []
+    for name in dict.fromkeys(r["backbone"] for r in rows):
+        pair = {r["skip"]: r for r in rows if r["backbone"] == name}
+        if set(pair) == set(SKIPS):
+            out.append((name, pair["none"], pair["grid"]))
+    return out
+
+
+def markdown(rows: list[dict[str, Any]], budgets: list[float], meta: dict[str, Any],
+             ref_step: int = 1000) -> str:
+    """The results table, the ``none / grid`` ratio table, the times to ``skip=none``'s
+    PSNR at ``ref_step`` (:func:`reference_time`) and a line of run settings."""
     head = (["backbone", "skip", "steps"] + [f"PSNR@{b:g}s" for b in budgets]
             + ["samples/ray", "real step ms", "field fwd+bwd ms", "AdamW ms", "rest ms",
                "grid upd. ms/step", "346×260 render s", "render samples/px"])
@@ -139,17 +189,25 @@ def markdown(rows: list[dict[str, Any]], budgets: list[float], meta: dict[str, A
                   "steps in budget"]
     lines += ["", "Ratios none / grid (same run; > 1: skipping is faster or uses fewer):", "",
               "| " + " | ".join(ratio_head) + " |", "|" + "---|" * len(ratio_head)]
-    for name in dict.fromkeys(r["backbone"] for r in rows):
-        pair = {r["skip"]: r for r in rows if r["backbone"] == name}
-        if set(pair) != set(SKIPS):
-            continue
-        n, g = pair["none"], pair["grid"]
+    for name, n, g in _pairs(rows):
         full = (n["real_s"] + n["update_s_per_step"]) / (g["real_s"] + g["update_s_per_step"])
         cells = [name, _f(n["samples_per_ray"] / g["samples_per_ray"], ".2f"),
                  _f(n["real_s"] / g["real_s"], ".2f"), _f(full, ".2f"),
                  _f(n["render_s"] / g["render_s"], ".2f"),
                  _f(g["steps"] / max(n["steps"], 1), ".2f")]
         lines.append("| " + " | ".join(cells) + " |")
+    ref_head = ["backbone", f"none: PSNR at step {ref_step}", "in s", "grid: reaches it in s",
+                "grid ÷ none (issue 12: ≤ 0.33)"]
+    lines += ["", f"Time to `skip=none`'s PSNR at step {ref_step} (medians of the last five "
+              "curve points):", "", "| " + " | ".join(ref_head) + " |",
+              "|" + "---|" * len(ref_head)]
+    for name, n, g in _pairs(rows):
+        ref = reference_time(n.get("curve", {"wall_s": [], "step": [], "psnr": []}),
+                             g.get("curve", {"wall_s": [], "step": [], "psnr": []}), ref_step)
+        ratio = (ref["grid_s"] / ref["none_s"] if ref["grid_s"] is not None
+                 and ref["none_s"] else None)
+        lines.append("| " + " | ".join([name, _f(ref["psnr"], ".2f"), _f(ref["none_s"], ".0f"),
+                                        _f(ref["grid_s"], ".0f"), _f(ratio, ".2f")]) + " |")
     lines += ["", "Settings: " + ", ".join(f"{k}={v}" for k, v in meta.items())]
     return "\n".join(lines)
 
@@ -170,6 +228,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--reps", type=int, default=7, help="timed real and bare steps")
     ap.add_argument("--curve-every", type=int, default=50,
                     help="steps between held-out curve points (besides one per budget)")
+    ap.add_argument("--ref-step", type=int, default=1000,
+                    help="step of skip=none's reference PSNR (the third table; 1000: the "
+                         "scale=cpu length)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
                     help="cuda: the paper's settings (trainer=paper) on the GPU")
@@ -217,7 +278,7 @@ def main(argv: list[str] | None = None) -> None:
             "loadavg": tuple(round(x, 2) for x in os.getloadavg())}
     if args.override:
         meta["overrides"] = " ".join(args.override)
-    table = markdown(rows, args.budgets, meta)
+    table = markdown(rows, args.budgets, meta, args.ref_step)
     log.info("\n%s", table)
     if args.out:
         Path(args.out).write_text(table + "\n")

@@ -15,7 +15,7 @@ import pytest
 from eventrecon.report import build_report, collect_runs
 from eventrecon.report.__main__ import main
 from eventrecon.report.budgets import budget_markdown, psnr_within
-from eventrecon.report.curves import summarize, time_to_level
+from eventrecon.report.curves import summarize, time_to_level, trailing_median
 from eventrecon.report.paper import PAPER_TABLES
 from eventrecon.report.runs import write_curve, write_run
 from eventrecon.report.tables import build_table, to_latex, to_markdown
@@ -733,3 +733,16 @@ def test_sweep_costs_sum_the_current_versions_job_times_and_price_the_older_runs
     old = _metrics("spheres", seed=0, **v)
     c = sweep_costs(collect_runs([_sweep(tmp_path / "c", [old], "table3").parent.parent]))[0]
     assert c.total_s == 100.0
+
+
+def test_time_to_level_on_the_median_of_the_last_points_ignores_a_lone_spike():
+    # a curve at 24 dB with one point spiking to 27 and then rising to 26 for good: the
+    # raw first crossing of 25.5 is the spike (t = 3); the median of the last three
+    # points reaches it only once two of three are above (t = 7); NaN points are ignored
+    w = np.arange(1.0, 9.0)
+    p = np.array([24.0, 24.1, 27.0, 24.0, 24.2, 26.0, 26.1, np.nan])
+    assert time_to_level(w, p, 25.5) == 3.0
+    assert time_to_level(w, p, 25.5, window=3) == 7.0
+    assert time_to_level(w, p, 26.5, window=3) is None
+    np.testing.assert_array_equal(trailing_median(p[:7], 3),
+                                  [24.0, 24.05, 24.1, 24.1, 24.2, 24.2, 26.0])

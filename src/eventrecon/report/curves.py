@@ -35,15 +35,36 @@ DEFAULT_LEVELS: tuple[float, ...] = (15.0, 20.0, 25.0, 30.0)
 _METRICS = (("psnr", "PSNR [dB] ↑"), ("ssim", "SSIM ↑"), ("lpips", "LPIPS ↓"))
 
 
-def time_to_level(wall_s: np.ndarray, psnr: np.ndarray, level: float) -> float | None:
-    """First ``wall_s[i]`` (in time order) with ``psnr[i] ≥ level``; ``None`` if never.
+def trailing_median(psnr: np.ndarray, window: int = 5) -> np.ndarray:
+    """``[T]``: at point ``i`` the median of ``psnr[max(0, i − window + 1) … i]``, a curve's
+    level from the points logged so far (``window`` 1: the points themselves). Held-out
+    curve points of one run scatter by ~0.5 dB from one to the next; a median of a few
+    is what a single point is not, steady.
+
+    >>> trailing_median(np.array([20.0, 24.0, 21.0, 25.0, 22.0]), 3).tolist()
+    [20.0, 22.0, 21.0, 24.0, 22.0]
+    """
+    p = np.asarray(psnr, float)
+    return np.array([np.median(p[max(0, i - window + 1):i + 1]) for i in range(p.size)])
+
+
+def time_to_level(wall_s: np.ndarray, psnr: np.ndarray, level: float,
+                  window: int = 1) -> float | None:
+    """First ``wall_s[i]`` (in time order) at which the :func:`trailing_median` of the last
+    ``window`` PSNRs reaches ``level`` (``window`` 1: ``psnr[i] ≥ level`` itself); ``None``
+    if never.
 
     ``wall_s, psnr``: ``[T]``; NaN PSNRs are ignored.
+
+    >>> time_to_level(np.array([1.0, 2.0, 3.0, 4.0]), np.array([20.0, 26.0, 23.0, 25.0]),
+    ...               24.0, window=3)
+    4.0
     """
     order = np.argsort(wall_s, kind="stable")
     w, p = np.asarray(wall_s, float)[order], np.asarray(psnr, float)[order]
-    hit = np.flatnonzero(np.nan_to_num(p, nan=-np.inf) >= level)
-    return float(w[hit[0]]) if hit.size else None
+    keep = np.isfinite(p)
+    hit = np.flatnonzero(trailing_median(p[keep], window) >= level)
+    return float(w[keep][hit[0]]) if hit.size else None
 
 
 @dataclass
