@@ -243,6 +243,17 @@ def test_a_non_finite_signal_is_one_clear_error(engine):
         run_core(sig, np.arange(5), _setup(5, 0.5), CoreSettings(engine=engine))
 
 
+def test_the_signal_called_in_blocks_gives_one_calls_values_and_dtype(monkeypatch):
+    # float64 and float32 signals, 1000 samples in blocks of 64 (the last one short)
+    monkeypatch.setattr(compiled_core, "SIGNAL_BATCH", 64)
+    g, t = np.arange(1000) % 37, np.linspace(0.0, 1.0, 1000)
+    for dtype in (np.float64, np.float32):
+        sig = lambda g, t, d=dtype: np.log(1.5 + np.sin(40 * t + g)).astype(d)  # noqa: E731
+        out = compiled_core._in_batches(sig, g, t)
+        assert out.dtype == dtype
+        np.testing.assert_array_equal(out, sig(g, t))
+
+
 def test_a_finite_signal_whose_sum_overflows_is_not_mistaken_for_a_non_finite_one():
     # the finiteness check sums the batch first; an overflowing sum of finite values must
     # fall through to the elementwise check and pass

@@ -272,12 +272,14 @@ def _in_batches(signal: Callable, g: np.ndarray, t: np.ndarray) -> np.ndarray:
     """``signal(g, t)`` (``[N]`` each) called on consecutive blocks of at most
     :data:`SIGNAL_BATCH` samples. The signal is elementwise (a sample's value depends on
     its own pixel and time only, as the core's other calls on any subset already assume),
-    so the values are those of one call."""
+    so the values, and their dtype (the first block's), are those of one call."""
     n = t.size
     if n <= SIGNAL_BATCH:
         return signal(g, t)
-    L = np.empty(n)
-    for a in range(0, n, SIGNAL_BATCH):
+    first = signal(g[:SIGNAL_BATCH], t[:SIGNAL_BATCH])
+    L = np.empty(n, first.dtype)
+    L[:SIGNAL_BATCH] = first
+    for a in range(SIGNAL_BATCH, n, SIGNAL_BATCH):
         e = min(a + SIGNAL_BATCH, n)
         L[a:e] = signal(g[a:e], t[a:e])
     return L

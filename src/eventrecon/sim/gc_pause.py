@@ -7,7 +7,8 @@ the process holds -- numpy, numba, torch when imported -- and the core creates n
 reference cycles for it to find. On the 346×260 grating at θ = 0.5 (``python -m
 benchmarks sim``), the collections cost 2-4 % of the run (measured alternated in one
 process, ``docs/results/event_core.md``, session 42). Reference counting still frees
-every temporary at once; only the cycle search waits until the loop ends.
+every temporary at once; only the cycle search waits until the loop ends, and with it
+any cycles the caller's signal creates (a rendered signal's few objects per call).
 """
 
 from __future__ import annotations
