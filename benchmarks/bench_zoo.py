@@ -75,6 +75,8 @@ BACKBONES: dict[str, list[str]] = {
     "hexplane": ["model=hexplane"],
 }
 SKIPS: tuple[str, ...] = ("none", "grid")
+#: The curve of a row without one (rows written before the curves were kept).
+NO_CURVE: dict[str, list[float]] = {"wall_s": [], "step": [], "psnr": []}
 
 
 def psnr_at(curve: Path, budgets: list[float]) -> dict[float, tuple[float | None, int | None]]:
@@ -202,8 +204,7 @@ def markdown(rows: list[dict[str, Any]], budgets: list[float], meta: dict[str, A
               "curve points):", "", "| " + " | ".join(ref_head) + " |",
               "|" + "---|" * len(ref_head)]
     for name, n, g in _pairs(rows):
-        ref = reference_time(n.get("curve", {"wall_s": [], "step": [], "psnr": []}),
-                             g.get("curve", {"wall_s": [], "step": [], "psnr": []}), ref_step)
+        ref = reference_time(n.get("curve", NO_CURVE), g.get("curve", NO_CURVE), ref_step)
         ratio = (ref["grid_s"] / ref["none_s"] if ref["grid_s"] is not None
                  and ref["none_s"] else None)
         lines.append("| " + " | ".join([name, _f(ref["psnr"], ".2f"), _f(ref["none_s"], ".0f"),

@@ -4,6 +4,11 @@ from __future__ import annotations
 
 from benchmarks.bench_zoo import markdown, reference_time
 
+#: A zoo result row but for its backbone, skip mode and curve.
+_ROW = {"status": "ok", "steps": 3, "samples_per_ray": 40.0, "real_s": 0.1, "field_s": 0.05,
+        "optim_s": 0.01, "rest_s": 0.04, "update_s_per_step": 0.0, "render_s": 2.0,
+        "render_samples_per_px": 40.0, "psnr@10": 25.0}
+
 
 def _curve(wall, psnr, every=500):
     return {"wall_s": list(wall), "step": [every * (i + 1) for i in range(len(wall))],
@@ -25,14 +30,17 @@ def test_reference_time_reads_both_curves_as_medians_of_their_last_points():
 
 
 def test_the_zoo_table_gives_the_grid_over_none_time_ratio():
-    row = {"status": "ok", "steps": 3, "samples_per_ray": 40.0, "real_s": 0.1, "field_s": 0.05,
-           "optim_s": 0.01, "rest_s": 0.04, "update_s_per_step": 0.0, "render_s": 2.0,
-           "render_samples_per_px": 40.0, "psnr@10": 25.0}
-    rows = [{**row, "backbone": "nerf", "skip": "none",
+    rows = [{**_ROW, "backbone": "nerf", "skip": "none",
              "curve": _curve([10.0, 20.0, 30.0], [22.0, 25.0, 26.0])},
-            {**row, "backbone": "nerf", "skip": "grid",
+            {**_ROW, "backbone": "nerf", "skip": "grid",
              "curve": _curve([8.0, 16.0, 24.0, 32.0], [21.0, 24.0, 23.5, 27.0])}]
     table = markdown(rows, [10.0], {"device": "cpu"}, ref_step=1000)
     line = next(x for x in table.splitlines() if x.startswith("| nerf | 23.50"))
     assert [c.strip() for c in line.strip("|").split("|")] == ["nerf", "23.50", "20", "24",
                                                                 "1.20"]
+
+
+def test_a_row_without_a_curve_gives_dashes_not_an_error():
+    rows = [{**_ROW, "backbone": "ngp", "skip": s} for s in ("none", "grid")]
+    line = next(x for x in markdown(rows, [], {}).splitlines() if x.startswith("| ngp | —"))
+    assert [c.strip() for c in line.strip("|").split("|")] == ["ngp", "—", "—", "—", "—"]
