@@ -22,6 +22,7 @@ ZOO_BUDGETS=${GPU_ZOO_BUDGETS:-"10 30"}
 # an H100, the grid did not pay in the first 30 s (docs/results/gpu.md), and with both
 # modes the zoo ran out of time before HexPlane
 ZOO_SKIP=${GPU_ZOO_SKIP:-none}
+ZOO_ONLY=${GPU_ZOO_ONLY:-}             # a subset of backbones for the zoo (default: all four)
 TOTAL_S=${GPU_SESSION_SECONDS:-560}   # the whole script, inside the device call's timeout_s
 PY=${PYTHON:-python3}
 T_START=$(date +%s)
@@ -41,6 +42,8 @@ cat "$OUT/env.txt"
 if [ "$DEVICE" = cuda ]; then
   # shellcheck disable=SC2206
   ZOO=(--device cuda --skip $ZOO_SKIP --images 1 --reps 5)
+  # shellcheck disable=SC2206
+  [ -n "$ZOO_ONLY" ] && ZOO+=(--only $ZOO_ONLY)
   TRAIN=(trainer=paper)
 else
   ZOO=(--device cpu --only nerf --skip none --images 1 --warmup 1 --reps 2 --threads 1)
