@@ -254,6 +254,33 @@ def test_the_signal_called_in_blocks_gives_one_calls_values_and_dtype(monkeypatc
         np.testing.assert_array_equal(out, sig(g, t))
 
 
+def test_the_blocks_go_to_the_given_buffer_only_when_it_has_the_signals_dtype(monkeypatch):
+    monkeypatch.setattr(compiled_core, "SIGNAL_BATCH", 64)
+    g, t = np.arange(1000) % 37, np.linspace(0.0, 1.0, 1000)
+    buf = np.full(1200, np.nan)
+    out = compiled_core._in_batches(lambda g, t: np.sin(40 * t + g), g, t, buf)
+    assert np.shares_memory(out, buf) and out.size == 1000
+    np.testing.assert_array_equal(out, np.sin(40 * t + g))
+    f32 = compiled_core._in_batches(lambda g, t: np.sin(40 * t + g).astype(np.float32),
+                                    g, t, buf)
+    assert f32.dtype == np.float32 and not np.shares_memory(f32, buf)
+
+
+def test_plan_fills_the_run_long_buffers_with_each_pixels_block():
+    pytest.importorskip("numba")
+    # pixel 5: equal steps of 0.1, a block of 3 (< M: odd); pixel 7 after an easy block:
+    # steps min(2^k·0.004, 0.005) from 0.99, the third ends at t = 1
+    bufs = compiled_core._PlanBuffers(P=3, M=4)
+    G, T, start, n_valid, odd = bufs.plan(
+        np.array([5, 7]), np.array([0.0, 0.99]), np.array([0.1, 0.004]),
+        np.array([False, True]), np.array([3, 4]), 4, 0.005)
+    np.testing.assert_array_equal(G, [5, 5, 5, 7, 7, 7])
+    np.testing.assert_allclose(T, [0.1, 0.2, 0.3, 0.994, 0.999, 1.0], rtol=0, atol=1e-15)
+    assert T[-1] == 1.0 and np.shares_memory(T, bufs.T) and np.shares_memory(G, bufs.G)
+    assert start.tolist() == [0, 3, 6] and n_valid.tolist() == [3, 3]
+    assert odd.tolist() == [True, True]
+
+
 def test_a_finite_signal_whose_sum_overflows_is_not_mistaken_for_a_non_finite_one():
     # the finiteness check sums the batch first; an overflowing sum of finite values must
     # fall through to the elementwise check and pass

@@ -7,7 +7,7 @@ detection, crossing times). Here the same rules run as one loop per pixel, compi
 the signal stays a vectorised numpy call. One iteration is
 
 1. :func:`_plan` -- each pixel's next block of sample times (``h, 2h, …`` or ``h, 2h,
-   4h, …``, clipped at ``t = 1``), flattened;
+   4h, …``, clipped at ``t = 1``), flattened into buffers kept for the whole run;
 2. ``signal(g, t)`` on all of them, in cache-sized blocks (:data:`SIGNAL_BATCH`);
 3. :func:`_step` -- per pixel: the accepted prefix (``|ΔL| ≤ β`` and
    ``|Δ²L| ≤ max_curvature·β``), the next step and block length, then the path
@@ -52,7 +52,7 @@ from eventrecon.sim.compiled_paths import (
     room,
 )
 from eventrecon.sim.core_settings import STEP_TARGET
-from eventrecon.sim.jit import AVAILABLE, njit, njit_borrowing, njit_inline
+from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline
 
 __all__ = ["AVAILABLE", "run_compiled"]
 
@@ -66,22 +66,19 @@ SIGNAL_BATCH = 1 << 15
 DROP = 0.75
 
 
-@njit
-def _plan(pix, t_last, h, grow, m, M, max_step):
-    """Sample times of each pixel's next block, flattened.
+@njit_borrowing
+def _plan(pix, t_last, h, grow, m, M, max_step, G, T, start, n_valid, odd):
+    """Sample times of each pixel's next block, flattened, into the caller's buffers.
 
     Pixel ``i`` samples ``t_i + h_i·(1, 2, …)``, or after an easy block the partial sums
     of ``min(2^k·h_i, max_step)``, at most ``m_i`` of them; a time from ``1 − 1e-12`` on
-    is 1 and ends the block. A pixel that has reached ``t = 1`` samples nothing. Returns
-    ``(G [Σ n], T [Σ n], start [N + 1], n_valid [N], odd [N])``: pixel ``i`` samples
-    ``T[start[i]:start[i+1]]`` (``G`` its global id ``pix[i]`` there); ``odd`` marks
-    unequal steps."""
+    is 1 and ends the block. A pixel that has reached ``t = 1`` samples nothing. Writes
+    ``G, T`` (``[≥ N·M]``; pixel ``i`` samples ``T[start[i]:start[i+1]]``, ``G`` its
+    global id ``pix[i]`` there), ``start [≥ N + 1]``, ``n_valid [≥ N]`` and ``odd [≥ N]``
+    (unequal steps). The buffers live as long as the run (:class:`_PlanBuffers`), so no
+    iteration maps fresh memory. Returns ``Σ n``, the samples written."""
     N = h.size
-    n_valid = np.empty(N, np.int64)
-    odd = np.empty(N, np.bool_)
-    start = np.zeros(N + 1, np.int64)
-    T = np.empty(N * M)
-    G = np.empty(N * M, np.int64)
+    start[0] = 0
     j = 0
     for i in range(N):
         t0, h0, s, p2, k = t_last[i], h[i], 0.0, 1.0, 0
@@ -101,7 +98,28 @@ def _plan(pix, t_last, h, grow, m, M, max_step):
         n_valid[i] = k
         odd[i] = grow[i] or m[i] < M or ended
         start[i + 1] = j
-    return G[:j], T[:j], start, n_valid, odd
+    return j
+
+
+class _PlanBuffers:
+    """The arrays :func:`_plan` fills and the signal's values, allocated once per run for
+    ``P`` pixels and blocks of ``M`` and reused by every iteration (views of their first
+    ``N`` or ``Σ n`` elements). Allocated afresh, one iteration's several MB went back to
+    the kernel and were faulted in again: ~37 000 minor faults in a fresh process's first
+    run on the 346×260 grating, 6 000–14 000 in later ones; now ~2 000."""
+
+    def __init__(self, P: int, M: int):
+        self.G, self.T = np.empty(P * M, np.int64), np.empty(P * M)
+        self.start, self.n_valid = np.empty(P + 1, np.int64), np.empty(P, np.int64)
+        self.odd, self.L = np.empty(P, np.bool_), np.empty(P * M)
+
+    def plan(self, pix, t_last, h, grow, m, M, max_step) -> tuple[np.ndarray, ...]:
+        """:func:`_plan` into the buffers: ``(G [Σ n], T [Σ n], start [N + 1],
+        n_valid [N], odd [N])``."""
+        N = h.size
+        j = _plan(pix, t_last, h, grow, m, M, max_step, self.G, self.T, self.start,
+                  self.n_valid, self.odd)
+        return self.G[:j], self.T[:j], self.start[:N + 1], self.n_valid[:N], self.odd[:N]
 
 
 @njit_inline
@@ -268,16 +286,22 @@ def _commit_turned(a, tr_i, tr_tb, tr_Lb, tr_moved, tr_gap, Wt, WL, wlen, wdone,
     return K, n
 
 
-def _in_batches(signal: Callable, g: np.ndarray, t: np.ndarray) -> np.ndarray:
+def _in_batches(signal: Callable, g: np.ndarray, t: np.ndarray,
+                out: np.ndarray | None = None) -> np.ndarray:
     """``signal(g, t)`` (``[N]`` each) called on consecutive blocks of at most
     :data:`SIGNAL_BATCH` samples. The signal is elementwise (a sample's value depends on
     its own pixel and time only, as the core's other calls on any subset already assume),
-    so the values, and their dtype (the first block's), are those of one call."""
+    so the values, and their dtype (the first block's), are those of one call. ``out``
+    (``[≥ N]``): where the blocks go when it has that dtype (the result is then a view of
+    it); a new array otherwise."""
     n = t.size
     if n <= SIGNAL_BATCH:
         return signal(g, t)
     first = signal(g[:SIGNAL_BATCH], t[:SIGNAL_BATCH])
-    L = np.empty(n, first.dtype)
+    if out is not None and out.dtype == first.dtype and out.size >= n:
+        L = out[:n]
+    else:
+        L = np.empty(n, first.dtype)
     L[:SIGNAL_BATCH] = first
     for a in range(SIGNAL_BATCH, n, SIGNAL_BATCH):
         e = min(a + SIGNAL_BATCH, n)
@@ -337,12 +361,12 @@ def run_compiled(signal: Callable, pix: np.ndarray, setup, s, stats: dict
     ev, n = (np.empty(cap, np.int64), np.empty(cap), np.empty(cap, np.int8)), 0
     tol = 0.5 * s.turn_tol * s.threshold
     it = 0
-    scratch = _scratch(M)
+    scratch, buffers = _scratch(M), _PlanBuffers(P, M)
 
     while pix.size:
         it += 1
-        G, T, start, n_valid, odd = _plan(pix, st_t[:, 2], h, grow, m, M, s.max_step)
-        L = _in_batches(signal, G, T)
+        G, T, start, n_valid, odd = buffers.plan(pix, st_t[:, 2], h, grow, m, M, s.max_step)
+        L = _in_batches(signal, G, T, buffers.L)
         stats["n_samples"] += T.size
         i, K = 0, 0
         while True:
