@@ -392,6 +392,30 @@ def test_render_image_matches_forward_on_the_same_rays() -> None:
         renderer.render_image(field, cams, 0, 0.5, bg_image=torch.zeros(4, 4, 3))
 
 
+def test_images_render_under_the_runs_mixed_precision_and_fp32_otherwise() -> None:
+    """``image_dtype`` bf16: the field's matmuls run in bf16 (rgb within bf16's rounding of
+    the fp32 image, returned as float32); ``None``, and fp16 on a CPU: fp32, bit for bit."""
+    from eventrecon.fields import NeRFField
+
+    torch.manual_seed(0)
+    field = NeRFField(depth=2, width=32, skip=-1, remap_width=32, colour_width=16,
+                      anneal_steps=0)
+    dtypes: list[torch.dtype] = []
+    field.register_forward_hook(lambda _m, _i, out: dtypes.append(out[0].dtype))
+    cams = ring_rig(2, 12, 9, radius=2.5, fov_deg=30)
+    renderer = Renderer(16, 16)
+    images = {}
+    for dtype in (None, torch.float16, torch.bfloat16):
+        dtypes.clear()
+        renderer.image_dtype = dtype
+        images[dtype] = renderer.render_image(field, cams, 1, 0.5, bg_image=0.25)["rgb"]
+        assert images[dtype].dtype == torch.float32
+        assert set(dtypes) == {torch.bfloat16 if dtype == torch.bfloat16 else torch.float32}
+    assert torch.equal(images[None], images[torch.float16])
+    diff = (images[torch.bfloat16] - images[None]).abs().max()
+    assert 0 < diff < 1e-2                       # bf16 keeps 8 bits of mantissa
+
+
 def test_renders_without_autograd_query_the_field_in_blocks_of_query_rows() -> None:
     """``query_rows`` caps the rows of every field call of a full-image render (the
     same image up to rounding); a call under autograd is never split."""

@@ -292,6 +292,22 @@ def test_lr_warms_up_linearly_then_decays(data_dir: Path):
                            Segment(0, 1000))
 
 
+def test_renderers_take_the_runs_mixed_precision_for_images_and_the_record_says_so(
+        data_dir: Path) -> None:
+    cfg = tiny_config(data_dir, "trainer.lightning.precision=bf16-mixed")
+    ds = build.load_dataset(cfg)
+    props = build.scene_properties(cfg, ds)
+    assert build.build_renderer(cfg.render, props, "bf16-mixed").image_dtype == torch.bfloat16
+    assert build.build_renderer(cfg.render, props, "32-true").image_dtype is None
+    assert records.run_info(cfg, {})["image_autocast"] is True
+    off = tiny_config(data_dir, "trainer.lightning.precision=bf16-mixed",
+                      "render.image_autocast=false")
+    assert build.build_renderer(off.render, props, "bf16-mixed").image_dtype is None
+    assert records.run_info(off, {})["image_autocast"] is False
+    fp32 = tiny_config(data_dir, "trainer.lightning.precision=32-true")
+    assert records.run_info(fp32, {})["image_autocast"] is False
+
+
 def test_betas_power_raises_adams_betas_and_the_record_and_tables_say_so(data_dir: Path,
                                                                         tmp_path: Path):
     cfg = tiny_config(data_dir, "model.optim.betas_power=10")

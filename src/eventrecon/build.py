@@ -38,6 +38,7 @@ from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.losses import LossConfig
 from eventrecon.module import EventNeRFModule, StepConfig, field_class_name
+from eventrecon.precision import mixed_dtype, run_precision
 from eventrecon.records import run_info
 from eventrecon.render.volume import Renderer
 
@@ -151,9 +152,16 @@ def build_field(model_cfg: DictConfig) -> Field:
     return instantiate(model_cfg, "model", Field, skip=DESCRIPTIVE_KEYS)
 
 
-def build_renderer(render_cfg: DictConfig, props: SceneProperties) -> Renderer:
-    """The renderer of ``cfg.render`` with the scene's clipping cylinder."""
-    return instantiate(render_cfg, "render", Renderer, **props.cylinder)
+def build_renderer(render_cfg: DictConfig, props: SceneProperties,
+                   precision: str | int | None = None) -> Renderer:
+    """The renderer of ``cfg.render`` with the scene's clipping cylinder; its images render
+    under the autocast of the run's ``precision`` (:func:`~eventrecon.precision.mixed_dtype`)
+    unless ``render.image_autocast`` is false."""
+    renderer = instantiate(render_cfg, "render", Renderer, skip=("image_autocast",),
+                           **props.cylinder)
+    if render_cfg.get("image_autocast", True):
+        renderer.image_dtype = mixed_dtype(precision)
+    return renderer
 
 
 def build_loss(loss_cfg: DictConfig, props: SceneProperties) -> LossConfig:
@@ -261,7 +269,7 @@ def build_module(cfg: DictConfig, props: SceneProperties, train: SplitData | Non
                       max_nonfinite=cfg.trainer.max_nonfinite, log_every=cfg.trainer.log_every,
                       seed=cfg.seed + 1000 * k, max_steps=int(cfg.trainer.max_steps),
                       lr_end_factor=lr_end_factor(cfg), lr_warmup=lr_warmup(cfg))
-    renderer = build_renderer(cfg.render, props)
+    renderer = build_renderer(cfg.render, props, run_precision(cfg))
     field.set_scene_box(*renderer.cylinder.box())
     return EventNeRFModule(field, renderer, batcher, build_loss(cfg.loss, props), step)
 
@@ -330,7 +338,7 @@ def load_segment(cfg: DictConfig, props: SceneProperties, seg_dir: Path, ckpt: s
     state = torch.load(path, map_location="cpu", weights_only=False)
     field.load_state_dict({k[6:]: v for k, v in state["state_dict"].items()
                            if k.startswith("field.")})
-    renderer = build_renderer(cfg.render, props)
+    renderer = build_renderer(cfg.render, props, run_precision(cfg))
     renderer.load_state_dict({k[9:]: v for k, v in state["state_dict"].items()
                               if k.startswith("renderer.")})
     field.set_scene_box(*renderer.cylinder.box())

@@ -27,6 +27,7 @@ none, so it is left out: the one place where this quadrature differs from theirs
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 from typing import TYPE_CHECKING, Any
 
@@ -36,6 +37,7 @@ from torch import Tensor, nn
 from eventrecon.colour import GREY_LINEAR
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
+from eventrecon.precision import image_autocast
 from eventrecon.render.clipping import NO_CLIPPING, Cylinder
 from eventrecon.render.occupancy import OccupancyGrid
 from eventrecon.render.queries import query_field
@@ -193,6 +195,8 @@ class Renderer(nn.Module):
         self.query_buckets, self.query_rows = int(query_buckets), int(query_rows)
         self.occupancy = (OccupancyGrid(*self.cylinder.box(), **(occupancy or {}))
                           if skip == "grid" else None)
+        #: the run's mixed dtype for renders without gradients (set by the builder)
+        self.image_dtype: torch.dtype | None = None
         #: samples sent to the field since the last reset (a plain counter for logging:
         #: samples per ray is ``field_inputs / rays``; never part of any result)
         self.field_inputs = 0
@@ -343,6 +347,10 @@ class Renderer(nn.Module):
             out.append(full)
         return out
 
+    def image_autocast(self, device: torch.device) -> contextlib.AbstractContextManager:
+        """:func:`~eventrecon.precision.image_autocast` of :attr:`image_dtype` on ``device``."""
+        return image_autocast(self.image_dtype, device)
+
     @torch.no_grad()
     def render_image(self, field: Field, cams: Cameras, view: int, t: float,
                      bg_image: Tensor | float | None = None, chunk: int | None = None
@@ -380,11 +388,12 @@ class Renderer(nn.Module):
         tt = torch.full((h * w, 1), float(t), device=device)
         chunk = int(chunk or self.chunk)
         parts: dict[str, list[Tensor]] = {"rgb": [], "opacity": [], "depth": []}
-        for i in range(0, h * w, chunk):
-            j = slice(i, i + chunk)
-            level = self.forward(field, o[j], d[j], tt[j], bg[j], perturb=False)[-1]
-            for key in parts:
-                parts[key].append(level[key])
+        with self.image_autocast(device):
+            for i in range(0, h * w, chunk):
+                j = slice(i, i + chunk)
+                level = self.forward(field, o[j], d[j], tt[j], bg[j], perturb=False)[-1]
+                for key in parts:
+                    parts[key].append(level[key].float())
         return {"rgb": torch.cat(parts["rgb"]).reshape(h, w, 3),
                 "opacity": torch.cat(parts["opacity"]).reshape(h, w),
                 "depth": torch.cat(parts["depth"]).reshape(h, w)}
