@@ -19,6 +19,8 @@ import pkgutil
 import sys
 from pathlib import Path
 
+from eventrecon.allocator import retain_freed_memory
+
 log = logging.getLogger("benchmarks")
 
 
@@ -33,6 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     logging.getLogger("eventrecon").setLevel(logging.WARNING)
+    retain_freed_memory()              # as train.py and the CLIs do (eventrecon.allocator)
     names = available()
     if argv and argv[0] in ("-h", "--help"):
         log.info("%s\nbenchmarks: %s", __doc__, ", ".join(names))

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from eventrecon.allocator import retain_freed_memory
 from eventrecon.build import load_dataset, load_segment, scene_properties
 from eventrecon.checkpointing import atomic_write_json
 from eventrecon.colour import linear_to_srgb
@@ -253,4 +254,5 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    retain_freed_memory()
     raise SystemExit(main())

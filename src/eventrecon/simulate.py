@@ -18,6 +18,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
+from eventrecon.allocator import retain_freed_memory
 from eventrecon.errors import InputError
 from eventrecon.sim.pipeline import ensure_dataset
 
@@ -48,4 +49,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    retain_freed_memory()
     main()
