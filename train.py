@@ -48,7 +48,7 @@ def main(cfg: DictConfig) -> float | None:
     from eventrecon.runner import run
 
     _one_log_stream()
-    retain_freed_memory()  # each job's process: renders stop re-faulting their buffers
+    retain_freed_memory()  # each job's process keeps freed blocks (eventrecon.allocator)
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN

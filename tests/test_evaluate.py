@@ -97,6 +97,24 @@ def test_an_interrupted_run_evaluates_from_its_last_checkpoints(run_dir: Path, t
     assert again["psnr"] == json.loads((run_dir / "metrics_eval.json").read_text())["psnr"]
 
 
+def test_images_render_in_the_precision_the_run_trained_with(run_dir: Path, tmp_path: Path,
+                                                             monkeypatch):
+    # the record's precision, not what `auto` resolves to on the evaluating machine
+    import shutil
+
+    from eventrecon import precision
+
+    monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda: True)
+    for trained, autocast in (("32-true", False), ("bf16-mixed", True)):
+        copy = tmp_path / trained
+        shutil.copytree(run_dir, copy)
+        rec = json.loads((copy / "metrics.json").read_text())
+        (copy / "metrics.json").write_text(json.dumps({**rec, "precision": trained}))
+        assert main([f"run={copy}"]) == 0
+        again = json.loads((copy / "metrics_eval.json").read_text())
+        assert (again["precision"], again["image_autocast"]) == (trained, autocast)
+
+
 @pytest.mark.parametrize("argv,expected", [
     ([], "usage: python -m eventrecon.evaluate run=DIR"),
     (["run=/nowhere"], "/nowhere/.hydra/config.yaml: <file>: expected the run's saved Hydra"),

@@ -293,7 +293,10 @@ def test_lr_warms_up_linearly_then_decays(data_dir: Path):
 
 
 def test_renderers_take_the_runs_mixed_precision_for_images_and_the_record_says_so(
-        data_dir: Path) -> None:
+        data_dir: Path, monkeypatch) -> None:
+    from eventrecon import precision
+
+    monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda: True)
     cfg = tiny_config(data_dir, "trainer.lightning.precision=bf16-mixed")
     ds = build.load_dataset(cfg)
     props = build.scene_properties(cfg, ds)
@@ -306,6 +309,11 @@ def test_renderers_take_the_runs_mixed_precision_for_images_and_the_record_says_
     assert records.run_info(off, {})["image_autocast"] is False
     fp32 = tiny_config(data_dir, "trainer.lightning.precision=32-true")
     assert records.run_info(fp32, {})["image_autocast"] is False
+    # fp16 (a GPU's precision) on a CPU, and bf16 on a CPU without it: images in fp32
+    fp16 = tiny_config(data_dir, "trainer.lightning.precision=16-mixed")
+    assert records.run_info(fp16, {})["image_autocast"] is False
+    monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda: False)
+    assert records.run_info(cfg, {})["image_autocast"] is False
 
 
 def test_betas_power_raises_adams_betas_and_the_record_and_tables_say_so(data_dir: Path,

@@ -13,11 +13,13 @@ included (dear on a virtual machine). Two loops of eventrecon do exactly that:
 
 :func:`retain_freed_memory` fixes both thresholds (``mallopt``; fixing the mmap threshold
 also stops its adjustment): blocks up to :data:`MMAP_THRESHOLD` come from the heap, and
-the heap is never trimmed. Measured on the 2-core AMX Xeon (docs/results/history.md,
-"Session 43"): a 346×260 held-out render of the 4×64 NeRF in 1.25–1.33 s instead of
-1.99–2.10 s; the event core on the 346×260 grating 2–6 % faster. The price is that the
-process keeps its peak heap until it exits. Values are unchanged bit for bit: only where
-memory comes from changes.
+the heap is never trimmed. Measured on the 2-core AMX Xeon (docs/results/event_core.md,
+"Buffers kept for the whole run"): the compiled event core on the 346×260 grating 4.5–9 %
+faster at θ = 0.5 and 21–23 % at θ = 0.2; a 346×260 render of the 4×64 NeRF in a fresh
+process 1.25–1.33 s instead of 1.99–2.10 s, but no faster after training in the same
+process (glibc's own threshold has risen by then). The price is that the process keeps
+its peak heap until it exits. Values are unchanged bit for bit: only where memory comes
+from changes.
 
 The command-line entry points call it (``train.py``, ``python -m eventrecon.evaluate``,
 ``python -m eventrecon.simulate``, ``python -m benchmarks``); a library user may call it

@@ -38,7 +38,7 @@ from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.losses import LossConfig
 from eventrecon.module import EventNeRFModule, StepConfig, field_class_name
-from eventrecon.precision import mixed_dtype, run_precision
+from eventrecon.precision import image_dtype, run_precision
 from eventrecon.records import run_info
 from eventrecon.render.volume import Renderer
 
@@ -155,12 +155,10 @@ def build_field(model_cfg: DictConfig) -> Field:
 def build_renderer(render_cfg: DictConfig, props: SceneProperties,
                    precision: str | int | None = None) -> Renderer:
     """The renderer of ``cfg.render`` with the scene's clipping cylinder; its images render
-    under the autocast of the run's ``precision`` (:func:`~eventrecon.precision.mixed_dtype`)
-    unless ``render.image_autocast`` is false."""
+    under the autocast of the run's ``precision`` (:func:`~eventrecon.precision.image_dtype`)."""
     renderer = instantiate(render_cfg, "render", Renderer, skip=("image_autocast",),
                            **props.cylinder)
-    if render_cfg.get("image_autocast", True):
-        renderer.image_dtype = mixed_dtype(precision)
+    renderer.image_dtype = image_dtype(render_cfg, precision)
     return renderer
 
 
@@ -325,10 +323,11 @@ def inspect_checkpoint(path: str | Path, field: Field) -> CheckpointInfo:
     return CheckpointInfo(path, int(state.get("global_step", -1)), meta)
 
 
-def load_segment(cfg: DictConfig, props: SceneProperties, seg_dir: Path, ckpt: str = "last"
-                 ) -> tuple[Field, Renderer]:
+def load_segment(cfg: DictConfig, props: SceneProperties, seg_dir: Path, ckpt: str = "last",
+                 precision: str | int | None = None) -> tuple[Field, Renderer]:
     """Field and renderer of a trained segment from ``seg_dir/checkpoints/<ckpt>.ckpt``;
-    the renderer carries the segment's own ``clip_scale`` (cylinder annealing state)."""
+    the renderer carries the segment's own ``clip_scale`` (cylinder annealing state) and
+    renders images under ``precision`` (default: :func:`run_precision` here)."""
     d = seg_dir / "checkpoints"
     path = d / f"{ckpt}.ckpt"
     if not path.exists():
@@ -338,7 +337,8 @@ def load_segment(cfg: DictConfig, props: SceneProperties, seg_dir: Path, ckpt: s
     state = torch.load(path, map_location="cpu", weights_only=False)
     field.load_state_dict({k[6:]: v for k, v in state["state_dict"].items()
                            if k.startswith("field.")})
-    renderer = build_renderer(cfg.render, props, run_precision(cfg))
+    renderer = build_renderer(cfg.render, props,
+                              run_precision(cfg) if precision is None else precision)
     renderer.load_state_dict({k[9:]: v for k, v in state["state_dict"].items()
                               if k.startswith("renderer.")})
     field.set_scene_box(*renderer.cylinder.box())

@@ -34,7 +34,8 @@ from eventrecon.data.types import SplitData
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.metrics import evaluate_images, psnr, subject_scores
-from eventrecon.records import run_info
+from eventrecon.precision import image_dtype, run_precision
+from eventrecon.records import METRICS_FILE, read_metrics, run_info
 from eventrecon.render.volume import Renderer
 from eventrecon.segments import crossfade_weights, run_segments, run_window
 from eventrecon.taskprogress import TaskProgress
@@ -191,6 +192,18 @@ def evaluate_models(cfg: DictConfig, props: SceneProperties, heldout: SplitData,
                             cfg.render.chunk)
 
 
+def _trained_precision(run_dir: Path, cfg: DictConfig) -> str | int:
+    """The precision the run trained with: its record's, else the config's resolved here
+    (an interrupted run has no record yet). Images render under it, not under what
+    ``auto`` would pick on the machine that evaluates."""
+    path = run_dir / METRICS_FILE
+    try:
+        return (read_metrics(path).get("precision") if path.exists() else None) or \
+            run_precision(cfg)
+    except InputError:
+        return run_precision(cfg)
+
+
 def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False) -> dict:
     """Re-evaluate a finished or interrupted run from its saved config and checkpoints.
 
@@ -215,11 +228,15 @@ def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False)
     window = run_window(cfg)
     segments = run_segments(cfg, props.segments)
     device = run_device(cfg)
+    trained = _trained_precision(run_dir, cfg)
     models = [(field.to(device), renderer) for field, renderer in
-              (load_segment(cfg, props, run_dir / f"seg{k}", ckpt) for k in range(len(segments)))]
+              (load_segment(cfg, props, run_dir / f"seg{k}", ckpt, trained)
+               for k in range(len(segments)))]
     views = list(range(heldout.n_views))
     frames = window_frames(heldout, window)
     metrics = {**run_info(cfg, ds.meta, data_id=Path(ds.root).name), "checkpoint": ckpt,
+               "precision": str(trained),
+               "image_autocast": image_dtype(cfg.render, trained, device.type) is not None,
                **render_and_score(models, segments, heldout, views, frames,
                                   run_dir / f"eval_{ckpt}", cfg.render.chunk, color_correct)}
     name = "metrics_eval.json" if not color_correct else "metrics_eval_cc.json"

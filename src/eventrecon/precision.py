@@ -34,7 +34,7 @@ from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from typing import Any
 
-__all__ = ["AUTO", "cpu_has_native_bf16", "image_autocast", "mixed_dtype",
+__all__ = ["AUTO", "cpu_has_native_bf16", "image_autocast", "image_dtype", "mixed_dtype",
            "resolve_precision", "run_precision"]
 
 AUTO = "auto"
@@ -114,15 +114,36 @@ def mixed_dtype(precision: str | int | None) -> Any:
     return {"bf16-mixed": torch.bfloat16, "16-mixed": torch.float16}.get(str(precision))
 
 
-def image_autocast(dtype: Any, device: Any) -> AbstractContextManager:
-    """The autocast of renders without gradients (held-out images, curve points) on
-    ``device``: ``dtype``, the run's :func:`mixed_dtype`, as the authors render their test
-    images under the AMP they train with (``render_single_image.py``). fp32 where it is
-    ``None``, and for fp16 on a CPU (slow there; CPU runs train in bf16 or fp32). On a
-    2-core AMX Xeon, bf16 made the default run's held-out evaluation 1.29× faster and
-    moved its PSNR by 0.001 dB (docs/results/history.md, "Session 43")."""
+def _precision_of(dtype: Any) -> str | None:
+    """The mixed precision whose autocast dtype is ``dtype`` (inverse of :func:`mixed_dtype`)."""
+    return {str(v): k for k, v in (("bf16-mixed", "torch.bfloat16"),
+                                   ("16-mixed", "torch.float16"))}.get(str(dtype))
+
+
+def image_dtype(render_cfg: Mapping[str, Any], precision: str | int | None,
+                device_type: str | None = None) -> Any:
+    """The autocast dtype of a run's renders without gradients (held-out images, curve
+    points): :func:`mixed_dtype` of the run's ``precision``, as the authors render their
+    test images under the AMP they train with (``render_single_image.py``). ``None`` (fp32)
+    where ``render.image_autocast`` is false, and on a CPU (``device_type`` "cpu") for
+    fp16 or for bf16 without native bf16 (both slow there). On a 2-core AMX Xeon, bf16 made
+    the default run's held-out evaluation 1.29× faster and moved its PSNR by 0.001 dB
+    (docs/results/history.md, "Session 43")."""
     import torch
 
-    if dtype is None or (dtype == torch.float16 and torch.device(device).type == "cpu"):
+    dtype = mixed_dtype(precision) if render_cfg.get("image_autocast", True) else None
+    if device_type == "cpu" and (dtype == torch.float16 or (dtype == torch.bfloat16
+                                                            and not cpu_has_native_bf16())):
+        return None
+    return dtype
+
+
+def image_autocast(dtype: Any, device: Any) -> AbstractContextManager:
+    """Autocast to ``dtype`` (:func:`image_dtype`, device-agnostic) on ``device``, or fp32
+    where ``dtype`` is ``None`` or does not suit the device (:func:`image_dtype`'s rule)."""
+    import torch
+
+    kind = torch.device(device).type
+    if dtype is None or image_dtype({}, _precision_of(dtype), kind) is None:
         return nullcontext()
-    return torch.autocast(torch.device(device).type, dtype=dtype)
+    return torch.autocast(kind, dtype=dtype)

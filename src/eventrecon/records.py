@@ -44,7 +44,7 @@ from typing import Any
 from eventrecon.checkpointing import atomic_write_bytes, atomic_write_json
 from eventrecon.errors import InputError
 from eventrecon.naming import dataset_name, name_from_meta
-from eventrecon.precision import mixed_dtype, run_precision
+from eventrecon.precision import image_dtype, run_precision
 
 __all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "VERSION_SCOPE", "VERSION_KEYS", "made_version",
            "record_version", "stale_reason", "METRICS_FILE", "CURVE_FILE", "DONE_FILE",
@@ -126,9 +126,15 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
             "precision": str(run_precision(cfg)),
             # held-out images rendered under that precision's autocast (records without the
             # key, from before session 43, rendered them in fp32)
-            "image_autocast": bool(cfg.render.get("image_autocast", True)
-                                   and mixed_dtype(run_precision(cfg)) is not None),
+            "image_autocast": image_dtype(cfg.render, run_precision(cfg),
+                                          _device_type(cfg)) is not None,
             "data_id": data_id}
+
+
+def _device_type(cfg: Any) -> str | None:
+    """``"cpu"`` for a run its trainer keeps on the CPU, else ``None`` (a GPU, or ``auto``)."""
+    lightning = cfg.trainer.get("lightning") or {}
+    return "cpu" if str(lightning.get("accelerator", "cpu")) == "cpu" else None
 
 
 def sizing_choice() -> str | None:
