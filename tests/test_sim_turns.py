@@ -273,7 +273,7 @@ def test_plan_fills_the_run_long_buffers_with_each_pixels_block():
     bufs = compiled_core._PlanBuffers(P=3, M=4)
     G, T, start, n_valid, odd = bufs.plan(
         np.array([5, 7]), np.array([0.0, 0.99]), np.array([0.1, 0.004]),
-        np.array([False, True]), np.array([3, 4]), 4, 0.005)
+        np.array([False, True]), np.array([3, 4]), 0.005)
     np.testing.assert_array_equal(G, [5, 5, 5, 7, 7, 7])
     np.testing.assert_allclose(T, [0.1, 0.2, 0.3, 0.994, 0.999, 1.0], rtol=0, atol=1e-15)
     assert T[-1] == 1.0 and np.shares_memory(T, bufs.T) and np.shares_memory(G, bufs.G)

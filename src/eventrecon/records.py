@@ -111,6 +111,7 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
     spec, so a changed scene makes earlier records of it stale: :func:`stale_reason`)."""
     name = (dataset_name(cfg.data.root, None) if cfg.data.get("root")
             else name_from_meta(meta) or cfg.scene.get("name", "custom"))
+    precision = run_precision(cfg)
     return {"scene": name,
             "model": cfg.model.get("name") or str(cfg.model.get("_target_")),
             "loss": cfg.loss.get("name", "full"),
@@ -123,11 +124,10 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
             "lr_end_factor": float(cfg.trainer.get("lr_end_factor", 1.0)),
             "lr_warmup": int(cfg.trainer.get("lr_warmup", 0)),
             "betas_power": float((cfg.model.get("optim", {}) or {}).get("betas_power", 1.0)),
-            "precision": str(run_precision(cfg)),
+            "precision": str(precision),
             # held-out images rendered under that precision's autocast (records without the
             # key, from before session 43, rendered them in fp32)
-            "image_autocast": image_dtype(cfg.render, run_precision(cfg),
-                                          _device_type(cfg)) is not None,
+            "image_autocast": image_dtype(cfg.render, precision, _device_type(cfg)) is not None,
             "data_id": data_id}
 
 

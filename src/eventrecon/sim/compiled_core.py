@@ -109,15 +109,15 @@ class _PlanBuffers:
     run on the 346×260 grating, 6 000–14 000 in later ones; now ~2 000."""
 
     def __init__(self, P: int, M: int):
-        self.G, self.T = np.empty(P * M, np.int64), np.empty(P * M)
+        self.M, self.G, self.T = M, np.empty(P * M, np.int64), np.empty(P * M)
         self.start, self.n_valid = np.empty(P + 1, np.int64), np.empty(P, np.int64)
         self.odd, self.L = np.empty(P, np.bool_), np.empty(P * M)
 
-    def plan(self, pix, t_last, h, grow, m, M, max_step) -> tuple[np.ndarray, ...]:
+    def plan(self, pix, t_last, h, grow, m, max_step) -> tuple[np.ndarray, ...]:
         """:func:`_plan` into the buffers: ``(G [Σ n], T [Σ n], start [N + 1],
         n_valid [N], odd [N])``."""
         N = h.size
-        j = _plan(pix, t_last, h, grow, m, M, max_step, self.G, self.T, self.start,
+        j = _plan(pix, t_last, h, grow, m, self.M, max_step, self.G, self.T, self.start,
                   self.n_valid, self.odd)
         return self.G[:j], self.T[:j], self.start[:N + 1], self.n_valid[:N], self.odd[:N]
 
@@ -365,7 +365,7 @@ def run_compiled(signal: Callable, pix: np.ndarray, setup, s, stats: dict
 
     while pix.size:
         it += 1
-        G, T, start, n_valid, odd = buffers.plan(pix, st_t[:, 2], h, grow, m, M, s.max_step)
+        G, T, start, n_valid, odd = buffers.plan(pix, st_t[:, 2], h, grow, m, s.max_step)
         L = _in_batches(signal, G, T, buffers.L)
         stats["n_samples"] += T.size
         i, K = 0, 0
