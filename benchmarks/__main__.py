@@ -19,6 +19,7 @@ import pkgutil
 import sys
 from pathlib import Path
 
+import eventrecon
 from eventrecon.allocator import retain_freed_memory
 
 log = logging.getLogger("benchmarks")
@@ -31,10 +32,28 @@ def available() -> list[str]:
                   if m.name.startswith("bench_"))
 
 
+def foreign_package(bench_dir: Path, package_file: Path) -> str | None:
+    """A warning when ``eventrecon`` (its ``__init__.py`` at ``package_file``) comes from
+    another checkout than the benchmarks in ``bench_dir``, ``None`` when it is the same
+    one (``bench_dir/../src/eventrecon``) or that checkout has no ``src``. A `git
+    worktree` of an older commit imports the virtual environment's editable install,
+    the main checkout's code, unless ``PYTHONPATH`` names its own ``src``: an A/B
+    timing would then run the new code twice."""
+    own = bench_dir.resolve().parent / "src"
+    used = package_file.resolve().parent
+    if not (own / "eventrecon").is_dir() or used == (own / "eventrecon").resolve():
+        return None
+    return (f"benchmarks from {bench_dir.resolve()} time eventrecon from {used}, another "
+            f"checkout: set PYTHONPATH={own} to time this checkout's code")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     logging.getLogger("eventrecon").setLevel(logging.WARNING)
+    warning = foreign_package(Path(__file__).parent, Path(eventrecon.__file__))
+    if warning:
+        log.warning(warning)
     retain_freed_memory()              # as train.py and the CLIs do (eventrecon.allocator)
     names = available()
     if argv and argv[0] in ("-h", "--help"):
