@@ -26,6 +26,19 @@ from torch import Tensor, nn
 
 _MODES = {1: "linear", 2: "bilinear", 3: "trilinear"}
 
+#: Fewest points per batch entry when :func:`sample_grid` splits its points on a CPU.
+MIN_SPLIT_POINTS = 2048
+
+
+def cpu_batches(n: int, device: torch.device) -> int:
+    """Batch entries to split ``n`` points into for ``grid_sample``: the CPU kernels,
+    forward and backward, run their batch entries in parallel and each entry's points on
+    one thread, so one image sampled at ``n`` points keeps one core busy. The threads'
+    count there (each entry at least :data:`MIN_SPLIT_POINTS` points), 1 elsewhere."""
+    if device.type != "cpu":
+        return 1
+    return max(1, min(torch.get_num_threads(), n // MIN_SPLIT_POINTS))
+
 
 def box_normalize(xyz: Tensor, t: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     """Map world positions in the box ``[lo, hi]`` and segment time to ``[-1, 1]^4``.
@@ -69,6 +82,11 @@ def sample_grid(grid: Tensor, coords: Tensor, align_corners: bool = True,
         ``[C, N]`` interpolated features, channel-first (products of factors then run on
         contiguous memory).
 
+    On a CPU with several threads the points are split into :func:`cpu_batches` batch
+    entries of one expanded image (the last padded with points whose outputs are
+    dropped): the same values, about 2× faster forward and backward on 2 threads; the
+    image's gradient is then the sum of the entries' gradients, equal up to rounding.
+
     >>> line = torch.tensor([[0.0, 1.0, 4.0]])      # C = 1, R = 3
     >>> sample_grid(line, torch.tensor([[-1.0], [0.5], [2.0]])).flatten().tolist()
     [0.0, 2.5, 4.0]
@@ -85,9 +103,17 @@ def sample_grid(grid: Tensor, coords: Tensor, align_corners: bool = True,
         img = grid.unsqueeze(0)
         g = coords.flip(-1).view(1, n, *([1] * (d - 1)), d)
     g = g.to(img.dtype)
-    out = F.grid_sample(img, g, mode="bilinear", padding_mode=padding,
-                        align_corners=align_corners)
-    return out.reshape(grid.shape[0], n)
+    k = cpu_batches(n, grid.device)
+    if k == 1:
+        out = F.grid_sample(img, g, mode="bilinear", padding_mode=padding,
+                            align_corners=align_corners)
+        return out.reshape(grid.shape[0], n)
+    m = -(-n // k)                                     # points per entry, the last padded
+    g = F.pad(g.reshape(n, -1), (0, 0, 0, k * m - n)).view(k, m, *g.shape[2:])
+    out = F.grid_sample(img.expand(k, *img.shape[1:]), g, mode="bilinear",
+                        padding_mode=padding, align_corners=align_corners)   # [k, C, m, 1…]
+    out = out.reshape(k, grid.shape[0], m).transpose(0, 1).reshape(grid.shape[0], k * m)
+    return out[:, :n] if k * m > n else out
 
 
 def sample_grid_reference(grid: Tensor, coords: Tensor, align_corners: bool = True,

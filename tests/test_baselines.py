@@ -68,6 +68,39 @@ def test_sample_grid_matches_explicit_gather(shape, align, padding):
     assert (got - ref).abs().max().item() <= 1e-5
 
 
+@pytest.mark.parametrize("shape", [(3, 40), (3, 17, 19), (2, 6, 5, 7)])
+def test_sample_grid_split_over_threads_gives_the_same_values_and_summed_gradients(shape):
+    """On 2 threads the points go to ``grid_sample`` as 2 batch entries (the last padded):
+    values bit for bit those of one entry, the grid's gradient the same up to the rounding
+    of its two partial sums; both match the explicit gather."""
+    import baselines.grids as grids
+
+    g = torch.Generator().manual_seed(1)
+    n = 3 * grids.MIN_SPLIT_POINTS + 5                   # odd: the second entry is padded
+    grid = torch.randn(shape, generator=g, requires_grad=True)
+    coords = torch.rand(n, len(shape) - 1, generator=g) * 2.2 - 1.1
+    weights = torch.randn(shape[0], n, generator=g)
+    before = torch.get_num_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            assert grids.cpu_batches(n, grid.device) == threads
+            grid.grad = None
+            out = sample_grid(grid, coords, False, "zeros")
+            (out * weights).sum().backward()
+            results.append((out.detach(), grid.grad.clone()))
+    finally:
+        torch.set_num_threads(before)
+    (one, grad_one), (two, grad_two) = results
+    assert two.shape == (shape[0], n) and torch.equal(one, two)
+    assert torch.allclose(grad_one, grad_two, rtol=1e-5, atol=1e-4)
+    ref = sample_grid_reference(grid.detach(), coords, False, "zeros")
+    assert (two - ref).abs().max().item() <= 1e-5
+    assert grids.cpu_batches(grids.MIN_SPLIT_POINTS - 1, grid.device) == 1   # too few points
+    assert grids.cpu_batches(10 ** 6, torch.device("meta")) == 1             # not a CPU
+
+
 def test_sample_conventions_known_values():
     line = torch.tensor([[2.0, 4.0]])  # R = 2
     c = torch.tensor([[-1.0], [-0.5], [0.5], [1.0]])
