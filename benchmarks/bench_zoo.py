@@ -173,7 +173,8 @@ def _pairs(rows: list[dict[str, Any]]) -> list[tuple[str, dict[str, Any], dict[s
 def markdown(rows: list[dict[str, Any]], budgets: list[float], meta: dict[str, Any],
              ref_step: int = 1000) -> str:
     """The results table, the ``none / grid`` ratio table, the times to ``skip=none``'s
-    PSNR at ``ref_step`` (:func:`reference_time`) and a line of run settings."""
+    PSNR at ``ref_step`` (:func:`reference_time`) and a line of run settings; the two
+    comparisons only where some backbone ran with both skip modes."""
     head = (["backbone", "skip", "steps"] + [f"PSNR@{b:g}s" for b in budgets]
             + ["samples/ray", "real step ms", "field fwd+bwd ms", "AdamW ms", "rest ms",
                "grid upd. ms/step", "346×260 render s", "render samples/px"])
@@ -187,6 +188,9 @@ def markdown(rows: list[dict[str, Any]], budgets: list[float], meta: dict[str, A
                                                    "update_s_per_step")]
         cells += [_f(r["render_s"], ".2f"), _f(r["render_samples_per_px"], ".1f")]
         lines.append("| " + " | ".join(cells) + " |")
+    if not _pairs(rows):                     # one skip mode only: nothing to compare
+        lines += ["", "Settings: " + ", ".join(f"{k}={v}" for k, v in meta.items())]
+        return "\n".join(lines)
     ratio_head = ["backbone", "samples/ray", "real step", "step + grid upd.", "render",
                   "steps in budget"]
     lines += ["", "Ratios none / grid (same run; > 1: skipping is faster or uses fewer):", "",

@@ -44,3 +44,11 @@ def test_a_row_without_a_curve_gives_dashes_not_an_error():
     rows = [{**_ROW, "backbone": "ngp", "skip": s} for s in ("none", "grid")]
     line = next(x for x in markdown(rows, [], {}).splitlines() if x.startswith("| ngp | —"))
     assert [c.strip() for c in line.strip("|").split("|")] == ["ngp", "—", "—", "—", "—"]
+
+
+def test_one_skip_mode_gives_the_results_table_without_empty_comparisons():
+    rows = [{**_ROW, "backbone": name, "skip": "grid"} for name in ("nerf", "ngp")]
+    table = markdown(rows, [10.0], {"device": "cpu"})
+    assert "Ratios none / grid" not in table and "Time to `skip=none`" not in table
+    assert sum(x.startswith(("| nerf | grid", "| ngp | grid")) for x in table.splitlines()) == 2
+    assert table.splitlines()[-1] == "Settings: device=cpu"
