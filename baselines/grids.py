@@ -27,17 +27,25 @@ from torch import Tensor, nn
 _MODES = {1: "linear", 2: "bilinear", 3: "trilinear"}
 
 #: Fewest points per batch entry when :func:`sample_grid` splits its points on a CPU.
-MIN_SPLIT_POINTS = 2048
+#: Forward + backward of a 32-channel plane on 2 threads (docs/results/history.md,
+#: "Session 44"), one entry → two: 128² at 4096 points 2.61 → 3.09 ms, at 8192 4.91 →
+#: 3.66 ms, at 39 040 28.3 → 14.4 ms.
+MIN_SPLIT_POINTS = 4096
 
 
-def cpu_batches(n: int, device: torch.device) -> int:
-    """Batch entries to split ``n`` points into for ``grid_sample``: the CPU kernels,
-    forward and backward, run their batch entries in parallel and each entry's points on
-    one thread, so one image sampled at ``n`` points keeps one core busy. The threads'
-    count there (each entry at least :data:`MIN_SPLIT_POINTS` points), 1 elsewhere."""
-    if device.type != "cpu":
+def cpu_batches(n: int, grid: Tensor) -> int:
+    """Batch entries to split ``n`` points of ``grid [C, R_0, …]`` into for
+    ``grid_sample``: the CPU kernels, forward and backward, run a batch's entries in
+    parallel and each entry's points on one thread, so one image sampled at ``n`` points
+    keeps one core busy. The threads' count there, with at least :data:`MIN_SPLIT_POINTS`
+    points per entry and at most ``16 n`` grid cells per channel over all entries (each
+    entry's image gradient is a buffer of the grid's size, zeroed and summed: a 512²
+    plane split in two gains at 39 040 points, 90 → 80 ms, and loses at 16 384, 45 →
+    56 ms); 1 elsewhere."""
+    if grid.device.type != "cpu":
         return 1
-    return max(1, min(torch.get_num_threads(), n // MIN_SPLIT_POINTS))
+    cells = max(1, grid[0].numel())
+    return max(1, min(torch.get_num_threads(), n // MIN_SPLIT_POINTS, 16 * n // cells))
 
 
 def box_normalize(xyz: Tensor, t: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
@@ -86,6 +94,7 @@ def sample_grid(grid: Tensor, coords: Tensor, align_corners: bool = True,
     entries of one expanded image (the last padded with points whose outputs are
     dropped): the same values, about 2× faster forward and backward on 2 threads; the
     image's gradient is then the sum of the entries' gradients, equal up to rounding.
+    The result's rows are then strided views (``[C, N]`` of a ``[C, k·m]`` array).
 
     >>> line = torch.tensor([[0.0, 1.0, 4.0]])      # C = 1, R = 3
     >>> sample_grid(line, torch.tensor([[-1.0], [0.5], [2.0]])).flatten().tolist()
@@ -103,7 +112,7 @@ def sample_grid(grid: Tensor, coords: Tensor, align_corners: bool = True,
         img = grid.unsqueeze(0)
         g = coords.flip(-1).view(1, n, *([1] * (d - 1)), d)
     g = g.to(img.dtype)
-    k = cpu_batches(n, grid.device)
+    k = cpu_batches(n, grid)
     if k == 1:
         out = F.grid_sample(img, g, mode="bilinear", padding_mode=padding,
                             align_corners=align_corners)

@@ -188,14 +188,23 @@ def markdown(rows: list[dict[str, Any]], budgets: list[float], meta: dict[str, A
                                                    "update_s_per_step")]
         cells += [_f(r["render_s"], ".2f"), _f(r["render_samples_per_px"], ".1f")]
         lines.append("| " + " | ".join(cells) + " |")
-    if not _pairs(rows):                     # one skip mode only: nothing to compare
-        lines += ["", "Settings: " + ", ".join(f"{k}={v}" for k, v in meta.items())]
-        return "\n".join(lines)
+    pairs = _pairs(rows)
+    if pairs:                                # both skip modes of some backbone
+        lines += _comparisons(pairs, ref_step)
+    lines += ["", "Settings: " + ", ".join(f"{k}={v}" for k, v in meta.items())]
+    return "\n".join(lines)
+
+
+def _comparisons(pairs: list[tuple[str, dict[str, Any], dict[str, Any]]],
+                 ref_step: int) -> list[str]:
+    """The ``none / grid`` ratio table and the times to ``skip=none``'s PSNR at
+    ``ref_step`` of the backbones run in both modes (Markdown lines)."""
+    lines: list[str] = []
     ratio_head = ["backbone", "samples/ray", "real step", "step + grid upd.", "render",
                   "steps in budget"]
     lines += ["", "Ratios none / grid (same run; > 1: skipping is faster or uses fewer):", "",
               "| " + " | ".join(ratio_head) + " |", "|" + "---|" * len(ratio_head)]
-    for name, n, g in _pairs(rows):
+    for name, n, g in pairs:
         full = (n["real_s"] + n["update_s_per_step"]) / (g["real_s"] + g["update_s_per_step"])
         cells = [name, _f(n["samples_per_ray"] / g["samples_per_ray"], ".2f"),
                  _f(n["real_s"] / g["real_s"], ".2f"), _f(full, ".2f"),
@@ -207,14 +216,13 @@ def markdown(rows: list[dict[str, Any]], budgets: list[float], meta: dict[str, A
     lines += ["", f"Time to `skip=none`'s PSNR at step {ref_step} (medians of the last five "
               "curve points):", "", "| " + " | ".join(ref_head) + " |",
               "|" + "---|" * len(ref_head)]
-    for name, n, g in _pairs(rows):
+    for name, n, g in pairs:
         ref = reference_time(n.get("curve", NO_CURVE), g.get("curve", NO_CURVE), ref_step)
         ratio = (ref["grid_s"] / ref["none_s"] if ref["grid_s"] is not None
                  and ref["none_s"] else None)
         lines.append("| " + " | ".join([name, _f(ref["psnr"], ".2f"), _f(ref["none_s"], ".0f"),
                                         _f(ref["grid_s"], ".0f"), _f(ratio, ".2f")]) + " |")
-    lines += ["", "Settings: " + ", ".join(f"{k}={v}" for k, v in meta.items())]
-    return "\n".join(lines)
+    return lines
 
 
 def main(argv: list[str] | None = None) -> None:

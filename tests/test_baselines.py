@@ -85,7 +85,7 @@ def test_sample_grid_split_over_threads_gives_the_same_values_and_summed_gradien
     try:
         for threads in (1, 2):
             torch.set_num_threads(threads)
-            assert grids.cpu_batches(n, grid.device) == threads
+            assert grids.cpu_batches(n, grid) == threads
             grid.grad = None
             out = sample_grid(grid, coords, False, "zeros")
             (out * weights).sum().backward()
@@ -97,8 +97,14 @@ def test_sample_grid_split_over_threads_gives_the_same_values_and_summed_gradien
     assert torch.allclose(grad_one, grad_two, rtol=1e-5, atol=1e-4)
     ref = sample_grid_reference(grid.detach(), coords, False, "zeros")
     assert (two - ref).abs().max().item() <= 1e-5
-    assert grids.cpu_batches(grids.MIN_SPLIT_POINTS - 1, grid.device) == 1   # too few points
-    assert grids.cpu_batches(10 ** 6, torch.device("meta")) == 1             # not a CPU
+    try:
+        torch.set_num_threads(2)
+        assert grids.cpu_batches(grids.MIN_SPLIT_POINTS - 1, grid) == 1      # too few points
+        assert grids.cpu_batches(10 ** 6, grid.to("meta")) == 1              # not a CPU
+        big = torch.zeros(1, 300, 300)                 # 90 000 cells: its buffer per entry
+        assert grids.cpu_batches(11_249, big) == 1 and grids.cpu_batches(11_250, big) == 2
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_sample_conventions_known_values():

@@ -13,7 +13,12 @@ from torch import nn
 
 from eventrecon.errors import InputError
 from eventrecon.fields import Field, NeRFField
-from eventrecon.fields.encoding import BandAnnealing, PositionalEncoding, band_window
+from eventrecon.fields.encoding import (
+    BandAnnealing,
+    PositionalEncoding,
+    band_window,
+    full_precision_products,
+)
 from eventrecon.render.volume import Renderer
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf" / "model" / "nerf.yaml")
@@ -167,27 +172,34 @@ def test_nerf_field_is_the_authors_layers_and_initialisation() -> None:
     assert torch.allclose(got[0], sigma, atol=1e-6) and torch.allclose(got[1], rgb, atol=1e-6)
 
 
-def _explicit_forward(f: NeRFField, xyz: torch.Tensor, t: torch.Tensor):
-    """The field written out plainly: every activation ``2·ReLU`` as a multiplication."""
+def _explicit_forward(f: NeRFField, xyz: torch.Tensor, t: torch.Tensor,
+                      authors_layout: bool = False):
+    """The field written out plainly: every activation ``2·ReLU`` as a multiplication, the
+    layers called as modules; on the grouped features through the gathered weights, or
+    with ``authors_layout`` on ``encode``'s features through the stored ones."""
     relu2 = lambda x: torch.relu(x) * 2.0  # noqa: E731
-    feats = f.features(xyz, t)
+    feats = f.encode(xyz, t) if authors_layout else f.features(xyz, t)
     h = feats
     for i, layer in enumerate(f.layers):
-        h = relu2(nn.functional.linear(h, f.layer_weight(i), layer.bias))
+        weight = layer.weight if authors_layout else f.layer_weight(i)
+        h = relu2(nn.functional.linear(h, weight, layer.bias))
         if i == f.skip:
             h = torch.cat([feats, h], dim=-1)
     sigma = nn.functional.softplus(f.density(h).squeeze(-1) + f.density_shift)
     return sigma, torch.sigmoid(f.colour_out(relu2(f.colour_hidden(f.colour_remap(h)))))
 
 
+@pytest.mark.parametrize("autocast", [None, torch.bfloat16])
 @pytest.mark.parametrize("step", [None, 1200])
-def test_grouped_features_are_the_authors_encoding_permuted_and_give_its_field(step) -> None:
-    """``features`` holds ``encode``'s values bit for bit in ``feature_order`` (bands all on
-    and half-way through annealing, in fp32, under bf16 autocast, and differentiable in
-    ``xyz``); the forward
-    pass through the gathered weight columns is the authors'-layout network written out
-    (``encode`` through the stored weights, skip included) up to the rounding of sums
-    taken in another order, values and gradients alike."""
+def test_grouped_features_are_the_authors_encoding_permuted_and_give_its_field(step,
+                                                                              autocast) -> None:
+    """``features`` holds ``encode``'s values in ``feature_order`` (bands all on and
+    half-way through annealing; in fp32, under bf16 autocast, differentiable in ``xyz``,
+    and with reduced-precision fp32 products switched on, where the angles come from a
+    gather instead of a product); the forward pass through the gathered weight columns
+    is the authors'-layout network written out (``encode`` through the stored weights,
+    skip included) up to the rounding of sums taken in another order: values and
+    gradients, the parameters' and ``xyz``'s, in fp32 and under bf16 autocast."""
     torch.manual_seed(5)
     f = NeRFField(depth=4, width=32, skip=1, pos_bands=5, time_bands=3, remap_width=32,
                   colour_width=16, anneal_steps=0 if step is None else 4000)
@@ -200,29 +212,29 @@ def test_grouped_features_are_the_authors_encoding_permuted_and_give_its_field(s
     assert torch.equal(f.features(xyz, t), enc[:, f.feature_order])
     with torch.autocast("cpu", dtype=torch.bfloat16):      # autocast's cast, made ahead
         assert torch.equal(f.features(xyz, t), enc[:, f.feature_order].bfloat16())
+    precision = torch.get_float32_matmul_precision()
+    try:
+        torch.set_float32_matmul_precision("medium")        # products may run in bf16
+        assert not full_precision_products()
+        assert torch.equal(f.features(xyz, t), enc[:, f.feature_order])
+    finally:
+        torch.set_float32_matmul_precision(precision)
+    assert full_precision_products()
     xyz.requires_grad_(True)                                  # the differentiable path
     assert torch.equal(f.features(xyz, t), enc[:, f.feature_order])
-    xyz.requires_grad_(False)
-
-    def authors(xyz, t):
-        relu2 = lambda x: torch.relu(x) * 2.0  # noqa: E731
-        enc = f.encode(xyz, t)
-        h = enc
-        for i, layer in enumerate(f.layers):
-            h = relu2(layer(h))
-            if i == f.skip:
-                h = torch.cat([enc, h], dim=-1)
-        sigma = nn.functional.softplus(f.density(h).squeeze(-1))
-        return sigma, torch.sigmoid(f.colour_out(relu2(f.colour_hidden(f.colour_remap(h)))))
 
     results = []
-    for forward in (f.forward, authors):
+    for authors in (False, True):
         f.zero_grad()
-        sigma, rgb = forward(xyz, t)
-        (sigma.square().sum() + (rgb * torch.arange(3.0)).sum()).backward()
-        results.append([sigma.detach(), rgb.detach(), *(p.grad.clone() for p in f.parameters())])
+        xyz.grad = None
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast is not None):
+            sigma, rgb = (_explicit_forward(f, xyz, t, True) if authors else f(xyz, t))
+        (sigma.float().square().sum() + (rgb.float() * torch.arange(3.0)).sum()).backward()
+        results.append([sigma.detach().float(), rgb.detach().float(), xyz.grad.clone(),
+                        *(p.grad.clone() for p in f.parameters())])
+    rtol = 1e-5 if autocast is None else 2e-2               # bf16: 8 bits of mantissa
     for a, b in zip(*results):
-        assert torch.allclose(a, b, rtol=1e-5, atol=1e-6 * b.abs().max().item())
+        assert torch.allclose(a, b, rtol=rtol, atol=rtol * b.abs().max().item())
 
 
 @pytest.mark.parametrize("autocast", [None, torch.bfloat16, torch.float16])

@@ -159,19 +159,21 @@ class NeRFField(Field):
         return torch.cat([self.pos_enc(xyz), self.time_enc(t.to(xyz.dtype))], dim=-1)
 
     def features(self, xyz: Tensor, t: Tensor) -> Tensor:
-        """The same features as :meth:`encode`, grouped: ``[x, t, sin(A), cos(A)]``, ``A``
-        every ``2^k x_d`` and ``2^k t`` (:func:`~eventrecon.fields.encoding.encode_grouped`);
-        ``features(...) == encode(...)[:, feature_order]`` bit for bit, in autocast's
-        dtype where it is active (the cast the first layer would make). The forward pass
-        reads these, at under half the encoding's time, with the weight columns that
-        take them gathered in the same order (:meth:`layer_weight`)."""
+        """The same features as :meth:`encode`, grouped: ``xyz [N, 3]``, ``t [N, 1]`` →
+        ``[N, in_dim]`` = ``[x, t, sin(A), cos(A)]``, ``A`` every ``2^k x_d`` and
+        ``2^k t`` (:func:`~eventrecon.fields.encoding.encode_grouped`). Equal in value to
+        ``encode(...)[:, feature_order]``, in autocast's dtype where it is active (the
+        cast the first layer would make). The forward pass reads these, at under half
+        the encoding's time, with the weight columns that take them gathered in the
+        same order (:meth:`layer_weight`)."""
         encs = (self.pos_enc, self.time_enc)
         window = None
-        if not all(e._all_on for e in encs):
+        if not all(e.all_on for e in encs):
             window = torch.cat([e.window.repeat_interleave(e.in_dim) for e in encs])
             window = window.to(xyz.dtype)
         device = xyz.device.type
-        dtype = torch.get_autocast_dtype(device) if torch.is_autocast_enabled(device) else None
+        dtype = (torch.get_autocast_dtype(device) if torch.amp.is_autocast_available(device)
+                 and torch.is_autocast_enabled(device) else None)
         return encode_grouped(torch.cat([xyz, t.to(xyz.dtype)], dim=-1), self.feature_freqs,
                               window, dtype)
 
@@ -182,9 +184,9 @@ class NeRFField(Field):
         otherwise. A gather of the small weight, differentiable."""
         weight = self.layers[i].weight
         if i == 0:
-            return weight[:, self.feature_order]
+            return torch.index_select(weight, 1, self.feature_order)
         if i == self.skip + 1:
-            return weight[:, self.skip_order]
+            return torch.index_select(weight, 1, self.skip_order)
         return weight
 
     def forward(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
