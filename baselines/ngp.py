@@ -62,16 +62,19 @@ class _WeightedGather(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, g: Tensor) -> tuple[Tensor, None, None]:  # type: ignore[override]
         idx, w = ctx.saved_tensors
-        src = (w[:, :, None] * g.to(w.dtype)[:, None, :]).reshape(-1, g.shape[-1])
-        rows = idx.reshape(-1).long()                                     # int64: fast paths
+        g = g.to(w.dtype)
         if g.device.type == "cpu":
-            # one weighted bincount per feature (float64 sums, rounded once): 4.3x faster
-            # than index_add_ on CPU (4.0 M corners into 0.96 M x 2 rows, one thread:
-            # 47 vs 201 ms), and at least as accurate
-            return torch.stack([torch.bincount(rows, weights=src[:, f], minlength=ctx.rows)
-                                for f in range(src.shape[1])], 1).to(w.dtype), None, None
+            # one weighted bincount per feature f over the flat corners, weights w * g[:, f]
+            # written contiguous and rows kept int32 (float64 sums, rounded once): a strided
+            # column or an int64 copy of the 4.4 M rows each cost as much as a bincount
+            # (NGP step, 39 040 samples: 58 -> 23 ms; index_add_ is slower still)
+            rows = idx.reshape(-1)
+            return torch.stack([torch.bincount(rows, weights=(w * g[:, f, None]).reshape(-1),
+                                               minlength=ctx.rows)
+                                for f in range(g.shape[1])], 1).to(w.dtype), None, None
+        src = (w[:, :, None] * g[:, None, :]).reshape(-1, g.shape[-1])
         grad = torch.zeros(ctx.rows, g.shape[-1], dtype=w.dtype, device=g.device)
-        return grad.index_add_(0, rows, src), None, None
+        return grad.index_add_(0, idx.reshape(-1).long(), src), None, None
 
 
 class HashEncoding(nn.Module):
@@ -149,22 +152,31 @@ class HashEncoding(nn.Module):
         Returns:
             ``(idx [N, L_k, 2^D] int32 in [0, total rows), w [N, L_k, 2^D])``; corner ``c``
             has offset bit ``b_k = (c >> k) & 1`` along axis ``k``.
+
+        Built corner-major (``[2^k, N, L_k]`` per axis ``k``), so that every doubling of
+        the corners is a broadcast over whole contiguous ``[N, L_k]`` planes, then copied
+        to the bag-major layout ``embedding_bag`` reads. On CPU this is ~2x faster than
+        doubling along a trailing corner axis of length 2..16 (39 040 samples, 7 hashed
+        levels: 32 -> 16 ms at 2 threads, 60 -> 25 ms at one); the values are the same.
         """
-        res, mult = getattr(self, f"{kind}_res"), getattr(self, f"{kind}_mult")
-        pos = u.clamp(0.0, 1.0)[:, None, :] * res[None].to(u.dtype)  # [N, Lk, D]
-        i0 = torch.minimum(pos.floor().long(), res[None] - 1)
+        res = getattr(self, f"{kind}_res").t()[:, None, :]                # [D, 1, Lk]
+        mult = getattr(self, f"{kind}_mult").t()[:, None, :]
+        pos = u.clamp(0.0, 1.0).t()[:, :, None] * res.to(u.dtype)        # [D, N, Lk]
+        i0 = torch.minimum(pos.floor().long(), res - 1)
         frac = pos - i0.to(pos.dtype)
-        v = torch.stack([i0, i0 + 1], dim=-1) * mult[None, :, :, None]  # [N, Lk, D, 2] int64
+        v0 = i0 * mult
+        v = torch.stack([v0, v0 + mult], dim=1)                           # [D, 2, N, Lk] int64
         if kind == "hash":  # low bits of a XOR are the XOR of low bits: mask before combining
             v = v & (self.table_size - 1)
         v = v.int()  # < T <= 2^30 per axis term (dense: sum < prod (R_k+1) <= T): int32 exact
-        w = torch.stack([1 - frac, frac], dim=-1)
-        idx, wt = v[:, :, 0], w[:, :, 0]
+        w = torch.stack([1 - frac, frac], dim=1)
+        idx, wt = v[0], w[0]                                              # [2, N, Lk]
         for k in range(1, self.n_dims):  # corner c = b_k 2^k + (lower bits)
-            a, b = v[:, :, k, :, None], idx[:, :, None, :]
-            idx = (a + b if kind == "dense" else a ^ b).flatten(2)
-            wt = (w[:, :, k, :, None] * wt[:, :, None, :]).flatten(2)
-        return idx + getattr(self, f"{kind}_offset")[None, :, None], wt
+            a, b = v[k][:, None], idx[None]
+            idx = (a + b if kind == "dense" else a ^ b).flatten(0, 1)    # [2^(k+1), N, Lk]
+            wt = (w[k][:, None] * wt[None]).flatten(0, 1)
+        idx = idx + getattr(self, f"{kind}_offset")[None, None, :]
+        return idx.permute(1, 2, 0).contiguous(), wt.permute(1, 2, 0).contiguous()
 
     def _all_corners(self, u: Tensor) -> list[tuple[Tensor, Tensor]]:
         return [self.corners(u, kind) for kind in ("dense", "hash")
