@@ -91,10 +91,11 @@ def sample_grid(grid: Tensor, coords: Tensor, align_corners: bool = True,
         contiguous memory).
 
     On a CPU with several threads the points are split into :func:`cpu_batches` batch
-    entries of one expanded image (the last padded with points whose outputs are
-    dropped): the same values, about 2× faster forward and backward on 2 threads; the
-    image's gradient is then the sum of the entries' gradients, equal up to rounding.
-    The result's rows are then strided views (``[C, N]`` of a ``[C, k·m]`` array).
+    entries of one expanded image (:func:`sample_grid_split`; the last padded with points
+    whose outputs are dropped): the same values, about 2× faster forward and backward on
+    2 threads; the image's gradient is then the sum of the entries' gradients, equal up
+    to rounding. The result's rows are then strided views (``[C, N]`` of a ``[C, k·m]``
+    array).
 
     >>> line = torch.tensor([[0.0, 1.0, 4.0]])      # C = 1, R = 3
     >>> sample_grid(line, torch.tensor([[-1.0], [0.5], [2.0]])).flatten().tolist()
@@ -102,26 +103,49 @@ def sample_grid(grid: Tensor, coords: Tensor, align_corners: bool = True,
     >>> sample_grid(line, torch.tensor([[0.0], [1.0]]), False, "zeros").flatten().tolist()
     [1.0, 2.0]
     """
+    k = cpu_batches(coords.shape[0], grid)
+    out = sample_grid_split(grid, coords, k, align_corners, padding)      # [k, C, m]
+    return unsplit(out, coords.shape[0])
+
+
+def sample_grid_split(grid: Tensor, coords: Tensor, k: int, align_corners: bool = True,
+                      padding: str = "border") -> Tensor:
+    """:func:`sample_grid` with the points split into ``k`` ``grid_sample`` batch entries
+    of ``m = ceil(N / k)`` points, the last padded with the point ``0``: ``[k, C, m]``,
+    point ``i`` at ``[i // m, :, i % m]`` (:func:`unsplit` gives ``[C, N]``). Factors
+    sampled with the same ``k`` combine channel by channel in this layout, so only the
+    combination is brought back to ``[C, N]``.
+
+    Args:
+        grid: ``[C, R_0, ..., R_{d-1}]``; coords: ``[N, d]``; k: entries (>= 1).
+        align_corners, padding: the convention (module docstring).
+
+    Returns:
+        ``[k, C, m]`` interpolated features.
+    """
     d = grid.dim() - 1
     n = coords.shape[0]
     if d == 1:  # a line as an [R, 1] image; the dummy width coordinate samples column 0
         img = grid.unsqueeze(-1).unsqueeze(0)
         g = torch.stack([torch.zeros_like(coords[:, 0]), coords[:, 0]], dim=-1)
-        g = g.view(1, n, 1, 2)
     else:  # grid_sample wants (x -> last axis, y -> previous axis, ...): reversed order
         img = grid.unsqueeze(0)
-        g = coords.flip(-1).view(1, n, *([1] * (d - 1)), d)
-    g = g.to(img.dtype)
-    k = cpu_batches(n, grid)
-    if k == 1:
-        out = F.grid_sample(img, g, mode="bilinear", padding_mode=padding,
-                            align_corners=align_corners)
-        return out.reshape(grid.shape[0], n)
+        g = coords.flip(-1)
     m = -(-n // k)                                     # points per entry, the last padded
-    g = F.pad(g.reshape(n, -1), (0, 0, 0, k * m - n)).view(k, m, *g.shape[2:])
+    g = g.to(img.dtype)
+    if k * m > n:
+        g = F.pad(g, (0, 0, 0, k * m - n))
+    g = g.reshape(k, m, *([1] * (max(d, 2) - 1)), g.shape[-1])     # [k, m, 1…, 2|3]
     out = F.grid_sample(img.expand(k, *img.shape[1:]), g, mode="bilinear",
                         padding_mode=padding, align_corners=align_corners)   # [k, C, m, 1…]
-    out = out.reshape(k, grid.shape[0], m).transpose(0, 1).reshape(grid.shape[0], k * m)
+    return out.reshape(k, grid.shape[0], m)
+
+
+def unsplit(values: Tensor, n: int) -> Tensor:
+    """``[k, C, m]`` (:func:`sample_grid_split`'s layout) -> ``[C, N]``, the padding
+    dropped; with ``k = 1`` a view."""
+    k, c, m = values.shape
+    out = values[0] if k == 1 else values.transpose(0, 1).reshape(c, k * m)
     return out[:, :n] if k * m > n else out
 
 
@@ -237,8 +261,11 @@ class FactorGrids(nn.Module):
         return [tuple(f.shape[1:]) for f in self.factors]
 
     def forward(self, coords: Tensor) -> list[Tensor]:
-        """Sample every factor: ``coords [N, 4]`` -> list of ``[C, N]``."""
-        return [sample_grid(f, coords[:, list(ax)], ac, self.padding)
+        """Sample every factor: ``coords [N, 4]`` -> list of ``[k, C, m]``
+        (:func:`sample_grid_split`'s layout, :func:`unsplit` gives ``[C, N]``), one ``k``
+        for all factors: the fewest entries :func:`cpu_batches` gives any of them."""
+        k = min(cpu_batches(coords.shape[0], f) for f in self.factors)
+        return [sample_grid_split(f, coords[:, list(ax)], k, ac, self.padding)
                 for f, ax, ac in zip(self.factors, self.axes, self.align_corners)]
 
     def upsample(self, shapes: Sequence[Sequence[int]]) -> None:

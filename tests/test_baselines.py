@@ -107,6 +107,37 @@ def test_sample_grid_split_over_threads_gives_the_same_values_and_summed_gradien
         torch.set_num_threads(before)
 
 
+@pytest.mark.parametrize("kind", ["tensorf_cp", "hexplane"])
+def test_factorised_field_combines_the_split_samples_into_the_one_thread_field(kind):
+    """On 2 threads the factors are sampled and multiplied in the split ``[k, C, m]``
+    layout (``k`` = 2, the second entry padded): the field equals the one-thread field,
+    value for value, and its gradients agree up to the rounding of the summed entries."""
+    import baselines.grids as grids
+
+    field = _small(kind)
+    n = 2 * grids.MIN_SPLIT_POINTS + 3
+    xyz, t = _points(n, 4)
+    w = torch.randn(n, 4, generator=torch.Generator().manual_seed(5))
+    before = torch.get_num_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            assert min(grids.cpu_batches(n, f) for f in field.grids.factors) == threads
+            field.zero_grad(set_to_none=True)
+            sigma, rgb = field(xyz, t)
+            (torch.cat([sigma[:, None], rgb], 1) * w).sum().backward()
+            results.append((sigma.detach(), rgb.detach(),
+                            [p.grad.clone() for p in field.grids.factors]))
+    finally:
+        torch.set_num_threads(before)
+    (s1, c1, g1), (s2, c2, g2) = results
+    assert s2.shape == (n,) and c2.shape == (n, 3)
+    assert torch.equal(s1, s2) and torch.equal(c1, c2)
+    for a, b in zip(g1, g2):
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-5)
+
+
 def test_sample_conventions_known_values():
     line = torch.tensor([[2.0, 4.0]])  # R = 2
     c = torch.tensor([[-1.0], [-0.5], [0.5], [1.0]])
