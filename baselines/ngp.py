@@ -15,9 +15,9 @@ of ``T_l`` entries by
 The level's feature is the quadrilinear interpolation over the 16 corners,
 ``sum_c prod_k w_k(c) F_l[idx(c)]`` with ``w_k = u_k R_{l,k} - i_k`` or its complement.
 All levels share one flat table with per-level offsets; the 16 corners and all levels
-of one kind (dense / hashed) are computed at once, then gathered with ``embedding_bag``
-(weighted sum of 16 rows) and a hand-written backward (one weighted ``bincount`` per
-feature on CPU, ``index_add_`` elsewhere); ``compile=True``
+of one kind (dense / hashed) are computed at once, then every level is gathered by one
+``embedding_bag`` (weighted sum of 16 rows) with a hand-written backward (one weighted
+``bincount`` per feature on CPU, ``index_add_`` elsewhere); ``compile=True``
 runs the index/weight computation through ``torch.compile``. Gradients flow to the table
 and the MLPs, not to the input coordinates (no loss of the method needs them).
 
@@ -65,13 +65,14 @@ class _WeightedGather(torch.autograd.Function):
         g = g.to(w.dtype)
         if g.device.type == "cpu":
             # one weighted bincount per feature f over the flat corners, weights w * g[:, f]
-            # written contiguous and rows kept int32 (float64 sums, rounded once): a strided
-            # column or an int64 copy of the 4.4 M rows each cost as much as a bincount
-            # (NGP step, 39 040 samples: 58 -> 23 ms; index_add_ is slower still)
+            # written contiguous and rows kept int32: a strided column or an int64 copy of
+            # the 4.4 M rows each cost as much as a bincount (NGP step, 39 040 samples:
+            # 58 -> 23 ms); index_add_ is slower still (4.0 M corners into 0.96 M x 2 rows,
+            # one thread: 47 vs 201 ms)
             rows = idx.reshape(-1)
             return torch.stack([torch.bincount(rows, weights=(w * g[:, f, None]).reshape(-1),
                                                minlength=ctx.rows)
-                                for f in range(g.shape[1])], 1).to(w.dtype), None, None
+                                for f in range(g.shape[1])], 1), None, None
         src = (w[:, :, None] * g[:, None, :]).reshape(-1, g.shape[-1])
         grad = torch.zeros(ctx.rows, g.shape[-1], dtype=w.dtype, device=g.device)
         return grad.index_add_(0, idx.reshape(-1).long(), src), None, None
@@ -150,14 +151,13 @@ class HashEncoding(nn.Module):
             kind: ``"dense"`` or ``"hash"``.
 
         Returns:
-            ``(idx [N, L_k, 2^D] int32 in [0, total rows), w [N, L_k, 2^D])``; corner ``c``
-            has offset bit ``b_k = (c >> k) & 1`` along axis ``k``.
+            ``(idx [2^D, N, L_k] int32 in [0, total rows), w [2^D, N, L_k])``, corner-major;
+            corner ``c`` has offset bit ``b_k = (c >> k) & 1`` along axis ``k``.
 
-        Built corner-major (``[2^k, N, L_k]`` per axis ``k``), so that every doubling of
-        the corners is a broadcast over whole contiguous ``[N, L_k]`` planes, then copied
-        to the bag-major layout ``embedding_bag`` reads. On CPU this is ~2x faster than
-        doubling along a trailing corner axis of length 2..16 (39 040 samples, 7 hashed
-        levels: 32 -> 16 ms at 2 threads, 60 -> 25 ms at one); the values are the same.
+        Corner-major, every doubling of the corners is a broadcast over whole contiguous
+        ``[N, L_k]`` planes: on CPU ~2x faster than doubling along a trailing corner axis
+        of length 2..16 (39 040 samples, 7 hashed levels, with the copy to the bag-major
+        layout of :meth:`all_corners`: 32 -> 16 ms at 2 threads, 60 -> 25 ms at one).
         """
         res = getattr(self, f"{kind}_res").t()[:, None, :]                # [D, 1, Lk]
         mult = getattr(self, f"{kind}_mult").t()[:, None, :]
@@ -175,31 +175,43 @@ class HashEncoding(nn.Module):
             a, b = v[k][:, None], idx[None]
             idx = (a + b if kind == "dense" else a ^ b).flatten(0, 1)    # [2^(k+1), N, Lk]
             wt = (w[k][:, None] * wt[None]).flatten(0, 1)
-        idx = idx + getattr(self, f"{kind}_offset")[None, None, :]
-        return idx.permute(1, 2, 0).contiguous(), wt.permute(1, 2, 0).contiguous()
+        return idx + getattr(self, f"{kind}_offset")[None, None, :], wt
 
-    def _all_corners(self, u: Tensor) -> list[tuple[Tensor, Tensor]]:
-        return [self.corners(u, kind) for kind in ("dense", "hash")
-                if getattr(self, f"{kind}_levels").numel() > 0]
+    def all_corners(self, u: Tensor) -> tuple[Tensor, Tensor]:
+        """Table rows and weights of the 16 corners at every level, bag-major for
+        ``embedding_bag``: ``(idx [N, L, 2^D] int32, w [N, L, 2^D])``, level ``l`` at
+        ``[:, l]`` (the dense levels are the coarse ones: they come first). Both kinds go
+        to one gather, so a field call's backward writes one table-sized gradient, not
+        one per kind."""
+        n, c = u.shape[0], 2 ** self.n_dims
+        idx = torch.empty(n, self.n_levels, c, dtype=torch.int32, device=u.device)
+        w = torch.empty(n, self.n_levels, c, dtype=u.dtype, device=u.device)
+        start = 0
+        for kind in ("dense", "hash"):
+            count = getattr(self, f"{kind}_levels").numel()
+            if count:
+                idx_k, w_k = self.corners(u, kind)
+                idx[:, start:start + count] = idx_k.permute(1, 2, 0)
+                w[:, start:start + count] = w_k.permute(1, 2, 0)
+                start += count
+        return idx, w
 
     def forward(self, u: Tensor) -> Tensor:
         """``u [N, D] -> [N, L * F]`` (level-major: level ``l`` at ``[:, l F:(l + 1) F]``).
 
         With ``use_compiled`` the corner indices and weights come from a ``torch.compile``d
-        version of :meth:`corners` (one fused loop instead of ~40 tensor ops); the gather
+        version of :meth:`all_corners` (one fused loop instead of ~40 tensor ops); the gather
         (``embedding_bag``) and its scatter-add backward stay eager.
         """
         u = u.float()
-        fn = self._all_corners
+        fn = self.all_corners
         if self.use_compiled:
             if self._compiled is None:
-                self._compiled = torch.compile(self._all_corners)
+                self._compiled = torch.compile(self.all_corners)
             fn = self._compiled
-        feats = []
-        for idx, w in fn(u):  # dense levels are the coarse ones: they come first
-            feat = _WeightedGather.apply(self.table, idx.flatten(0, 1), w.flatten(0, 1))
-            feats.append(feat.reshape(u.shape[0], idx.shape[1] * self.n_features))
-        return torch.cat(feats, dim=1)
+        idx, w = fn(u)
+        feat = _WeightedGather.apply(self.table, idx.flatten(0, 1), w.flatten(0, 1))
+        return feat.reshape(u.shape[0], self.n_levels * self.n_features)
 
 
 def hash_encode_reference(enc: HashEncoding, u: Tensor) -> Tensor:

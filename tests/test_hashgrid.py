@@ -97,7 +97,7 @@ def test_hash_indices_inside_table_at_edges():
     u = _edge_points(2000)
     u[0] = 1.0
     for kind in ("dense", "hash"):
-        idx, w = enc.corners(u, kind)
+        idx, w = (a.permute(1, 2, 0) for a in enc.corners(u, kind))   # [N, L_k, 16]
         levels = getattr(enc, f"{kind}_levels").tolist()
         for j, lvl in enumerate(levels):
             rows = idx[:, j] - enc.offsets[lvl]
@@ -113,7 +113,7 @@ def test_hash_has_no_int32_overflow():
     """The far corner of the finest paper level: v_k * pi_k reaches ~3.8e12 > 2^31."""
     enc = HashEncoding()  # finest level R = 1024
     u = torch.ones(1, 4)
-    idx, _ = enc.corners(u, "hash")
+    idx = enc.corners(u, "hash")[0].permute(1, 2, 0)                  # [N, L_k, 16]
     r = enc.resolutions[-1]
     expect = 0
     for k in range(4):
