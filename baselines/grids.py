@@ -24,6 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from eventrecon.errors import InputError
+
 _MODES = {1: "linear", 2: "bilinear", 3: "trilinear"}
 
 #: Fewest points per batch entry when :func:`sample_grid` splits its points on a CPU.
@@ -87,8 +89,7 @@ def sample_grid(grid: Tensor, coords: Tensor, align_corners: bool = True,
         align_corners, padding: the convention (module docstring).
 
     Returns:
-        ``[C, N]`` interpolated features, channel-first (products of factors then run on
-        contiguous memory).
+        ``[C, N]`` interpolated features, channel-first.
 
     On a CPU with several threads the points are split into :func:`cpu_batches` batch
     entries of one expanded image (:func:`sample_grid_split`; the last padded with points
@@ -123,6 +124,8 @@ def sample_grid_split(grid: Tensor, coords: Tensor, k: int, align_corners: bool 
     Returns:
         ``[k, C, m]`` interpolated features.
     """
+    if k < 1:
+        raise InputError("sample_grid_split", "k", "an integer >= 1", k)
     d = grid.dim() - 1
     n = coords.shape[0]
     if d == 1:  # a line as an [R, 1] image; the dummy width coordinate samples column 0

@@ -65,14 +65,14 @@ class _WeightedGather(torch.autograd.Function):
         g = g.to(w.dtype)
         if g.device.type == "cpu":
             # one weighted bincount per feature f over the flat corners, weights w * g[:, f]
-            # written contiguous and rows kept int32: a strided column or an int64 copy of
-            # the 4.4 M rows each cost as much as a bincount (NGP step, 39 040 samples:
-            # 58 -> 23 ms); index_add_ is slower still (4.0 M corners into 0.96 M x 2 rows,
-            # one thread: 47 vs 201 ms)
+            # written contiguous, rows kept int32 (no rows: int64 zeros, hence the cast): a
+            # strided column or an int64 copy of the 4.4 M rows each cost as much as a
+            # bincount (NGP step, 39 040 samples: 58 -> 23 ms); index_add_ is slower still
+            # (4.0 M corners into 0.96 M x 2 rows, one thread: 47 vs 201 ms)
             rows = idx.reshape(-1)
             return torch.stack([torch.bincount(rows, weights=(w * g[:, f, None]).reshape(-1),
                                                minlength=ctx.rows)
-                                for f in range(g.shape[1])], 1), None, None
+                                for f in range(g.shape[1])], 1).to(w.dtype), None, None
         src = (w[:, :, None] * g[:, None, :]).reshape(-1, g.shape[-1])
         grad = torch.zeros(ctx.rows, g.shape[-1], dtype=w.dtype, device=g.device)
         return grad.index_add_(0, idx.reshape(-1).long(), src), None, None

@@ -75,8 +75,8 @@ def make_naive(field: Field) -> Field:
         enc.forward = lambda u: hash_encode_reference(enc, u)  # type: ignore[method-assign]
     elif isinstance(field, FactorisedField):
         grids = field.grids
-        grids.forward = lambda c: [  # type: ignore[method-assign]
-            sample_grid_reference(f, c[:, list(ax)], ac, grids.padding)
+        grids.forward = lambda c: [  # type: ignore[method-assign]   # [k = 1, C, N]
+            sample_grid_reference(f, c[:, list(ax)], ac, grids.padding)[None]
             for f, ax, ac in zip(grids.factors, grids.axes, grids.align_corners)]
     else:
         raise TypeError(f"no naive version of {type(field).__name__}")
