@@ -82,11 +82,14 @@ def test_no_sample_above_the_threshold_is_skipped(recheck: float):
     assert r.occupancy.occupied_fraction() < 0.3  # and the grid skips most of the box
 
 
-def test_skipped_render_equals_dense_and_kept_gradients_are_identical():
+@pytest.mark.parametrize("groups", [1, 4])
+def test_skipped_render_equals_dense_and_kept_gradients_are_identical(groups: int):
     """A field with exactly zero density where cells are empty, densities too low to stop a
-    ray: the skipped render is the dense one, and so are the gradients."""
+    ray: the skipped render is the dense one, and so are the gradients, with the coarse
+    samples marched in one group or in four."""
     dense_field, skip_field = Blob(k=20.0), Blob(k=20.0)
     r_skip = _with_grid(skip_field, resolution=32, time_bins=8, threshold=1e-6)
+    r_skip.march_chunks = groups
     r_dense = Renderer(n_coarse=32, n_fine=32, **CYL)
     o, d, t, bg = _rays(400, 1)
     gen = (torch.Generator().manual_seed(5), torch.Generator().manual_seed(5))
@@ -157,6 +160,31 @@ def test_fewer_samples_reach_the_field_and_the_grid_resumes_exactly():
         rr.occupancy.update(lambda x, tt, rr=rr: rr.masked_density(field, x, tt),
                             torch.Generator().manual_seed(42))
     assert torch.equal(again.occupancy.density, r.occupancy.density)
+
+
+def test_training_marches_in_one_field_call_with_the_image_march_stops_as_masks():
+    """Under autograd the occupied coarse samples reach the field in one call and the
+    march's stops are masks; without it the groups are separate calls. Rays that become
+    opaque stop, and both renders (values, and which samples count) are the same."""
+    field = Blob(k=5000.0, radius=0.35)         # opaque: σ up to 600 per unit
+    r = _with_grid(field, resolution=32, time_bins=8, threshold=0.01)
+    r.query_buckets = 0                          # exact row counts
+    assert r.march_chunks == 4
+    calls: list[int] = []
+    hook = field.register_forward_hook(lambda m, inp, out: calls.append(inp[0].shape[0]))
+    o, d, t, bg = _rays(300, 4)
+    trained = r(field, o, d, t, bg)
+    n_train, rows_train = len(calls), sum(calls)
+    calls.clear()
+    with torch.no_grad():
+        image = r(field, o, d, t, bg)
+    hook.remove()
+    assert (n_train, len(calls)) == (2, 5)       # coarse call(s) + the fine level
+    assert rows_train > sum(calls)               # samples behind a stop: evaluated, masked
+    assert float(image[0]["opacity"].max()) > 1 - 1e-4      # some rays do stop
+    for a, b in zip(trained, image):
+        assert torch.allclose(a["rgb"].detach(), b["rgb"], atol=1e-6)
+        assert torch.equal(a["weights"].detach() > 0, b["weights"] > 0)
 
 
 def test_grid_marks_outside_the_cylinder_empty():

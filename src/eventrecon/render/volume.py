@@ -113,16 +113,15 @@ class Renderer(nn.Module):
     fine level: the field is a deterministic function of ``(x, t)`` with the same
     parameters at both levels, so values and gradients are identical to evaluating the
     union afresh, with 192 field evaluations per ray instead of 256 at 64 + 128 samples.
-    Rays that miss the clipping volume are not sent to the field (their colour is the
-    background); points outside the cylinder get ``σ = 0``.
+    Rays that miss the clipping volume show the background; points outside get ``σ = 0``.
 
     Empty-space skipping (``skip="grid"``): a time-aware :class:`OccupancyGrid` (kept up
     to date from the field by :class:`~eventrecon.render.occupancy.OccupancyUpdate`)
     says which samples can hold density; the others get ``σ = 0`` without reaching the
     field, and so do samples outside the cylinder. The coarse samples are evaluated front
     to back in ``march_chunks`` groups, and a ray stops once its transmittance is below
-    ``stop_transmittance`` (1e-4); fine samples beyond that point are not evaluated
-    either. ``skip="none"`` evaluates every sample of every ray that hits the cylinder.
+    ``stop_transmittance`` (1e-4) at the start of a group (:meth:`_march`); fine samples
+    beyond it are not evaluated either. ``skip="none"`` evaluates every sample of a hit.
 
     The renderer has no parameters. ``clip_scale`` (in [0, 1]) multiplies the radius of
     the cylinder outside which density is zero; samples always span the full cylinder
@@ -248,17 +247,27 @@ class Renderer(nn.Module):
 
     def _march(self, field: Field, o: Tensor, d: Tensor, t: Tensor, s: Tensor,
                far: Tensor) -> tuple[Tensor, Tensor]:
-        """The coarse samples front to back in ``march_chunks`` groups: only occupied
-        samples of rays whose transmittance is still above ``stop_transmittance`` reach the
-        field (``[n, K]`` σ and ``[n, K, 3]`` rgb, zero where skipped)."""
+        """The coarse samples front to back in ``march_chunks`` groups: occupied samples of
+        rays whose transmittance is above ``stop_transmittance`` at a group's start count
+        (``[n, K]`` σ, ``[n, K, 3]`` rgb; 0 for the others). Images call the field group by
+        group; training calls it once on the occupied samples and applies the stops as
+        masks: the same values and gradients, one backward instead of one per group
+        (trained ``make train`` NeRF: 33–35 against 42–45 ms per step)."""
         n, k = s.shape
         keep = self._occupied(o, d, t, s)
         delta = step_sizes(s, far).float()
         tau = torch.zeros(n, device=s.device)
-        sig_parts, rgb_parts, bounds = [], [], torch.linspace(0, k, self.march_chunks + 1)
-        for a, b in zip(bounds[:-1].round().long().tolist(), bounds[1:].round().long().tolist()):
-            if b <= a:
-                continue
+        bounds = torch.linspace(0, k, self.march_chunks + 1).round().long().tolist()
+        groups = [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+        if torch.is_grad_enabled():
+            sig, rgb = self._query(field, o, d, t, s, keep)
+            alive, tau_i = torch.ones_like(keep), sig.detach().float().clamp(min=0) * delta
+            for a, b in groups:
+                alive[:, a:b] = (torch.exp(-tau) > self.stop_transmittance)[:, None]
+                tau = tau + (tau_i[:, a:b] * alive[:, a:b]).sum(-1)
+            return sig * alive, rgb * alive[..., None]
+        sig_parts, rgb_parts = [], []
+        for a, b in groups:
             alive = torch.exp(-tau) > self.stop_transmittance
             sig, rgb = self._query(field, o, d, t, s[:, a:b], keep[:, a:b] & alive[:, None])
             tau = tau + (sig.detach().float().clamp(min=0) * delta[:, a:b]).sum(-1)
@@ -332,20 +341,12 @@ class Renderer(nn.Module):
         # copies of a ray hit or miss together, so the hits keep the block structure
         sub = self._render_hit(field, o[idx], d[idx], t[idx], bg[idx], near[idx], far[idx],
                                perturb, gen, copies)
-        out = []
-        for level in sub:
-            k = level["s"].shape[1]
-            full = {
-                "rgb": bg.float().index_put((idx,), level["rgb"]),
-                "opacity": far.new_zeros(n, dtype=torch.float32).index_put(
-                    (idx,), level["opacity"]),
-                "depth": far.float().index_put((idx,), level["depth"]),
-                "weights": far.new_zeros((n, k), dtype=torch.float32).index_put(
-                    (idx,), level["weights"]),
-                "s": far.new_zeros((n, k)).index_put((idx,), level["s"]),
-            }
-            out.append(full)
-        return out
+        # a miss is the background: opacity, weights and s 0, depth far (0 for a miss)
+        missed = {"rgb": bg.float(), "opacity": far.new_zeros(n, dtype=torch.float32),
+                  "depth": far.float(), "weights": far.new_zeros((n, 1), dtype=torch.float32),
+                  "s": far.new_zeros((n, 1))}
+        return [{key: missed[key].expand(n, *value.shape[1:]).index_put((idx,), value)
+                 for key, value in level.items()} for level in sub]
 
     def image_autocast(self, device: torch.device) -> contextlib.AbstractContextManager:
         """:func:`~eventrecon.precision.image_autocast` of :attr:`image_dtype` on ``device``."""
@@ -375,9 +376,8 @@ class Renderer(nn.Module):
         h, w = cams.height, cams.width
         o, d = cams.image_rays(view)
         o, d = o.to(device), d.to(device)
-        if bg_image is None:
-            bg_image = GREY_LINEAR
-        bg = torch.as_tensor(bg_image, dtype=torch.float32, device=device)
+        bg = torch.as_tensor(GREY_LINEAR if bg_image is None else bg_image,
+                             dtype=torch.float32, device=device)
         if bg.shape == (h, w, 3):
             bg = bg.reshape(h * w, 3)
         elif bg.numel() in (1, 3):
