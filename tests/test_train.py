@@ -50,8 +50,11 @@ def test_200_steps_lower_the_loss_and_beat_a_constant_colour(data_dir: Path, tmp
     # blocks: textured boxes large enough at 32x24 px to be learnt in 200 steps (measured:
     # +1.7..2.1 dB over the constant colour for seeds 0, 1, 3, 4; the small spheres need
     # ~1000 steps at this size before they beat the grey background reliably)
+    # fp32 on every machine: under bf16 autocast (precision auto on a CPU with native
+    # bf16) the trajectory is another one per CPU, and its RGB term after 200 steps
+    # ranged 0.69-0.92 of the start over seeds 0, 2, 4 and two commits (session 45)
     cfg = tiny_config(data_dir, "scene=blocks", "trainer.max_steps=200",
-                      "trainer.checkpoint_every=100")
+                      "trainer.checkpoint_every=100", "trainer.lightning.precision=32-true")
     metrics = runner.run(cfg, tmp_path)
     # the loss before training, with the same initial field (same seed as the run)
     ds = build.load_dataset(cfg)
@@ -67,6 +70,7 @@ def test_200_steps_lower_the_loss_and_beat_a_constant_colour(data_dir: Path, tmp
     # L_acc clear): method version 3, total 0.2245 -> 0.2030 (-9.6 %), RGB term 0.0115 ->
     # 0.0091, held-out 26.78 dB; version 2 started higher, 0.266 -> 0.229 (-13.8 %), RGB
     # 0.0131 -> 0.0106, 25.86 dB. (Seeds 1 and 3 collapse to the empty field in both.)
+    # Version 4 on a Zen 4 EPYC (session 45): total x0.906, RGB x0.773, 26.77 dB.
     assert after["loss"] < 0.93 * before["loss"], (before, after)
     assert after["rgb"] < 0.85 * before["rgb"], (before, after)
 
