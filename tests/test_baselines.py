@@ -3,6 +3,8 @@ the authors' layouts and the configs."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -33,6 +35,17 @@ def _one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+@contextmanager
+def _threads(n: int) -> Iterator[None]:
+    """Run the block on ``n`` intra-op threads (the ``_one_thread`` fixture's 1 after)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def _small(kind: str, **kw) -> nn.Module:
@@ -80,31 +93,24 @@ def test_sample_grid_split_over_threads_gives_the_same_values_and_summed_gradien
     grid = torch.randn(shape, generator=g, requires_grad=True)
     coords = torch.rand(n, len(shape) - 1, generator=g) * 2.2 - 1.1
     weights = torch.randn(shape[0], n, generator=g)
-    before = torch.get_num_threads()
     results = []
-    try:
-        for threads in (1, 2):
-            torch.set_num_threads(threads)
+    for threads in (1, 2):
+        with _threads(threads):
             assert grids.cpu_batches(n, grid) == threads
             grid.grad = None
             out = sample_grid(grid, coords, False, "zeros")
             (out * weights).sum().backward()
             results.append((out.detach(), grid.grad.clone()))
-    finally:
-        torch.set_num_threads(before)
     (one, grad_one), (two, grad_two) = results
     assert two.shape == (shape[0], n) and torch.equal(one, two)
     assert torch.allclose(grad_one, grad_two, rtol=1e-5, atol=1e-4)
     ref = sample_grid_reference(grid.detach(), coords, False, "zeros")
     assert (two - ref).abs().max().item() <= 1e-5
-    try:
-        torch.set_num_threads(2)
+    with _threads(2):
         assert grids.cpu_batches(grids.MIN_SPLIT_POINTS - 1, grid) == 1      # too few points
         assert grids.cpu_batches(10 ** 6, grid.to("meta")) == 1              # not a CPU
         big = torch.zeros(1, 300, 300)                 # 90 000 cells: its buffer per entry
         assert grids.cpu_batches(11_249, big) == 1 and grids.cpu_batches(11_250, big) == 2
-    finally:
-        torch.set_num_threads(before)
 
 
 @pytest.mark.parametrize("kind", ["tensorf_cp", "hexplane"])
@@ -118,19 +124,15 @@ def test_factorised_field_combines_the_split_samples_into_the_one_thread_field(k
     n = 2 * grids.MIN_SPLIT_POINTS + 3
     xyz, t = _points(n, 4)
     w = torch.randn(n, 4, generator=torch.Generator().manual_seed(5))
-    before = torch.get_num_threads()
     results = []
-    try:
-        for threads in (1, 2):
-            torch.set_num_threads(threads)
+    for threads in (1, 2):
+        with _threads(threads):
             assert min(grids.cpu_batches(n, f) for f in field.grids.factors) == threads
             field.zero_grad(set_to_none=True)
             sigma, rgb = field(xyz, t)
             (torch.cat([sigma[:, None], rgb], 1) * w).sum().backward()
             results.append((sigma.detach(), rgb.detach(),
                             [p.grad.clone() for p in field.grids.factors]))
-    finally:
-        torch.set_num_threads(before)
     (s1, c1, g1), (s2, c2, g2) = results
     assert s2.shape == (n,) and c2.shape == (n, 3)
     assert torch.equal(s1, s2) and torch.equal(c1, c2)
