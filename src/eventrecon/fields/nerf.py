@@ -65,6 +65,7 @@ from eventrecon.fields.encoding import (
     encode_grouped,
     grouped_layout,
 )
+from eventrecon.fields.linear import linear, linear_relu
 
 __all__ = ["NeRFField"]
 
@@ -72,20 +73,6 @@ __all__ = ["NeRFField"]
 #: Zeroed view-direction features the authors concatenate before the hidden colour layer
 #: (an Embedder of 3 inputs with 4 bands: 3 + 3·4·2); they set that layer's init range.
 ZEROED_VIEWDIR_FEATURES = 27
-
-
-def _linear(weight: Tensor, bias: Tensor, h: Tensor, scale: float) -> Tensor:
-    """``scale·h`` through a linear layer, ``b + h (scale·W)ᵀ`` in one ``addmm``
-    (``h [N, in]``, ``weight [out, in]``). Under autocast the weight is cast to the
-    compute dtype before it is scaled, so the product uses ``scale·cast(W)`` as the
-    explicit form would (casting ``scale·W`` instead rounds differently where ``W`` is
-    subnormal in fp16)."""
-    if scale != 1.0:
-        device = h.device.type
-        if torch.is_autocast_enabled(device):
-            weight = weight.to(torch.get_autocast_dtype(device))
-        weight = weight * scale
-    return torch.addmm(bias, h, weight.t())
 
 
 class NeRFField(Field):
@@ -208,14 +195,14 @@ class NeRFField(Field):
         feats = self.features(xyz, t)
         h, scale = feats, 1.0                    # the activation is scale·h (module docstring)
         for i, layer in enumerate(self.layers):
-            h, scale = torch.relu(_linear(self.layer_weight(i), layer.bias, h, scale)), 2.0
+            h, scale = linear_relu(self.layer_weight(i), layer.bias, h, scale), 2.0
             if i == self.skip:
                 h, scale = torch.cat([feats, h * 2.0], dim=-1), 1.0
-        sigma = _linear(self.density.weight, self.density.bias, h, scale)
+        sigma = linear(self.density.weight, self.density.bias, h, scale)
         sigma = F.softplus(sigma.squeeze(-1) + self.density_shift)
-        remap = _linear(self.colour_remap.weight, self.colour_remap.bias, h, scale)
-        hidden = torch.relu(self.colour_hidden(remap))
-        rgb = torch.sigmoid(_linear(self.colour_out.weight, self.colour_out.bias, hidden, 2.0))
+        remap = linear(self.colour_remap.weight, self.colour_remap.bias, h, scale)
+        hidden = linear_relu(self.colour_hidden.weight, self.colour_hidden.bias, remap)
+        rgb = torch.sigmoid(linear(self.colour_out.weight, self.colour_out.bias, hidden, 2.0))
         return sigma, rgb
 
     def callbacks(self) -> list[Any]:
