@@ -2,54 +2,67 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import pytest
 import torch
+from torch import Tensor
 
 import eventrecon.fields.linear as lin
 from eventrecon.fields.linear import linear, linear_relu
 from eventrecon.fields.nerf import NeRFField
 
-pytestmark = pytest.mark.skipif(lin._POINTWISE is None, reason="no oneDNN in this build")
+fused_only = pytest.mark.skipif(lin._POINTWISE is None,
+                                reason="no oneDNN bf16 linear or no native bf16 here")
 
 
 @pytest.fixture
 def fused_calls(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, ...]]:
-    """The input shapes of every fused call."""
+    """The input shapes of every fused call (a stand-in that must not run where the
+    fused operator is missing)."""
     calls: list[tuple[int, ...]] = []
     op = lin._POINTWISE
 
-    def counted(h, *args):
+    def counted(h: Tensor, *args: Any) -> Tensor:
         calls.append(tuple(h.shape))
+        assert op is not None, "the fused path ran without the fused operator"
         return op(h, *args)
     monkeypatch.setattr(lin, "_POINTWISE", counted)
     return calls
 
 
+@fused_only
 @pytest.mark.parametrize("scale", [1.0, 2.0])
 @pytest.mark.parametrize("shape", [(1000, 102, 64), (777, 64, 32), (3, 5, 7)])
 def test_fused_relu_is_addmm_then_relu_to_the_bit(shape, scale, fused_calls) -> None:
-    """Under bf16 autocast without autograd: oneDNN's linear with a ReLU post-op equals
+    """Under bf16 autocast with grad mode off: oneDNN's linear with a ReLU post-op equals
     autocast's ``addmm`` followed by ``relu`` exactly, with the weight doubled as the
-    ``2·ReLU`` fold doubles it; ``linear`` is the same product without the ReLU."""
+    ``2·ReLU`` fold doubles it; so does the same call on bf16 parameters without
+    autocast."""
     n, i, o = shape
     g = torch.Generator().manual_seed(n)
     h = torch.randn(n, i, generator=g).bfloat16()
     w, b = torch.randn(o, i, generator=g), torch.randn(o, generator=g)
-    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
-        got = linear_relu(w, b, h, scale)
-        plain = linear(w, b, h, scale)
-        want = torch.relu(torch.addmm(b, h, (w.bfloat16() * scale).t()))
-    assert fused_calls == [(n, i)]
-    assert got.dtype == want.dtype == torch.bfloat16
-    assert torch.equal(got, want) and torch.equal(torch.relu(plain), want)
+    want = torch.relu(torch.addmm(b.bfloat16(), h, (w.bfloat16() * scale).t()))
+    with torch.no_grad():
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            got = linear_relu(w, b, h, scale)
+            plain = linear(w, b, h, scale)
+        got_bf16 = linear_relu(w.bfloat16(), b.bfloat16(), h, scale)
+    assert fused_calls == [(n, i), (n, i)]
+    assert got.dtype == got_bf16.dtype == plain.dtype == torch.bfloat16
+    assert torch.equal(got, want) and torch.equal(got_bf16, want)
     assert (want == 0).any() and (want > 0).any()             # the ReLU cut something
 
 
-def test_fp32_and_autograd_keep_addmm(fused_calls) -> None:
-    """In fp32, and in bf16 with autograd on (training), nothing is fused."""
+def test_fp32_autograd_and_mixed_dtypes_keep_addmm(fused_calls) -> None:
+    """Nothing is fused in fp32, with grad mode on (training), or for bf16 activations
+    with fp32 parameters outside autocast, which stays ``addmm``'s dtype error."""
     h, w, b = torch.randn(50, 8), torch.randn(4, 8), torch.randn(4)
     with torch.no_grad():
         assert torch.equal(linear_relu(w, b, h), torch.relu(torch.addmm(b, h, w.t())))
+        with pytest.raises(RuntimeError):
+            linear_relu(w, b, h.bfloat16())
     w.requires_grad_(True)
     with torch.autocast("cpu", dtype=torch.bfloat16):
         out = linear_relu(w, b, h.bfloat16())
@@ -57,17 +70,22 @@ def test_fp32_and_autograd_keep_addmm(fused_calls) -> None:
     assert fused_calls == [] and w.grad is not None
 
 
-def test_nerf_field_renders_the_same_with_and_without_the_fused_relu(fused_calls,
+@fused_only
+@pytest.mark.parametrize("sizes", [dict(depth=4, width=64, skip=-1, remap_width=64,
+                                        colour_width=32),
+                                   dict(depth=4, width=32, skip=1, remap_width=32,
+                                        colour_width=16)])
+def test_nerf_field_renders_the_same_with_and_without_the_fused_relu(sizes, fused_calls,
                                                                      monkeypatch) -> None:
-    """The 4×64 field without autograd under bf16 autocast (an evaluation image's query):
-    the same σ and rgb to the bit whether its four hidden layers and colour layer fuse
-    their ReLU or not."""
+    """The field with grad mode off under bf16 autocast (an evaluation image's query),
+    with and without the skip: the same σ and rgb to the bit whether its hidden layers
+    and colour layer fuse their ReLU or not."""
     torch.manual_seed(0)
-    f = NeRFField(depth=4, width=64, skip=-1, remap_width=64, colour_width=32, anneal_steps=0)
+    f = NeRFField(**sizes, anneal_steps=0)
     xyz, t = torch.rand(4096, 3) * 2 - 1, torch.rand(4096, 1)
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
         fused = f(xyz, t)
-        assert len(fused_calls) == 5
+        assert len(fused_calls) == 5                          # 4 hidden + the colour layer
         monkeypatch.setattr(lin, "_POINTWISE", None)
         plain = f(xyz, t)
     for a, b in zip(fused, plain):

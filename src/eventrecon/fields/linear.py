@@ -5,29 +5,50 @@ ReLU that follows fused into the product.
 NeRF MLP's ``2·ReLU``, :mod:`eventrecon.fields.nerf`) that is applied to the weight
 instead, ``(s·h) Wᵀ = h (s·W)ᵀ``: exact for a power of two.
 
-**The fused ReLU.** :func:`linear_relu` computes ``max(0, b + h (s·W)ᵀ)``. Without
-autograd, where ``h`` is bf16 on a CPU (images rendered under bf16 autocast), it calls
-oneDNN's linear with a ReLU post-op (``torch.ops.mkldnn._linear_pointwise``) instead of
-``addmm`` followed by ``relu``: the activations are written once instead of being read
-and written again, and oneDNN's linear primitive is itself faster than ``addmm`` on these
-shapes (16 384 rows, 2 cores, Zen 4: 102→64 0.70 → 0.56 ms, 64→64 0.50 → 0.37 ms, 64→32
-0.27 → 0.20 ms; a 346×260 image of the 4×64 NeRF 1.09–1.13× faster). The values are those
-of ``addmm`` then ``relu`` to the bit (both accumulate in fp32 and round once to bf16;
-``tests/test_linear.py``). Training keeps ``addmm`` and ``relu``: a fused forward with
-autograd's backward written out was bit-identical but 2–6 % slower per field step
-(4 096–16 384 rows), the ``relu`` pass it saves being cheaper than the autograd function
-around it. Anywhere else (fp32, a GPU, a build without oneDNN) it is ``relu(addmm(...))``.
+**The fused ReLU.** :func:`linear_relu` computes ``max(0, b + h (s·W)ᵀ)``. With grad mode
+off (evaluation images, curve points, the occupancy grid's queries), where ``h`` is bf16
+on a CPU that computes in bf16 natively, it calls oneDNN's linear with a ReLU post-op
+(``torch.ops.mkldnn._linear_pointwise``, a private operator of the pinned torch, the one
+inductor's CPU fusion emits) instead of ``addmm`` followed by ``relu``: the activations
+are written once instead of being read and written again, and oneDNN's linear primitive
+is itself faster than ``addmm`` on these shapes (16 384 rows, 2 cores, Zen 4: 102→64
+0.70 → 0.56 ms, 64→64 0.50 → 0.37 ms, 64→32 0.27 → 0.20 ms; a 346×260 image of the 4×64
+NeRF 1.13× faster as the median of interleaved pairs, 1.09× on the medians). Its values
+were measured identical to ``addmm`` then ``relu``, bit for bit, with torch 2.13 on that
+CPU (``tests/test_linear.py`` checks it wherever the fused path runs): not a property of
+the method, since the two run different oneDNN primitives. With grad mode on (training
+steps) it is ``addmm`` and ``relu``: a fused forward with autograd's backward written out
+gave the same gradients but was 4–6 % slower per field step (4 096–16 384 rows), the
+``relu`` pass it saves being cheaper than the autograd function around it. Anywhere else
+(fp32, a GPU, a CPU without native bf16, a build without oneDNN) it is
+``relu(addmm(...))``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import Tensor
 
+from eventrecon.precision import cpu_has_native_bf16
+
 __all__ = ["linear", "linear_relu"]
 
-_POINTWISE = getattr(torch.ops.mkldnn, "_linear_pointwise", None) \
-    if torch.backends.mkldnn.is_available() else None
+
+def _fused_op() -> Callable[..., Tensor] | None:
+    """oneDNN's linear with a post-op, where oneDNN runs bf16 and the CPU has it natively
+    (the only place its speed was measured); ``None`` elsewhere."""
+    op = getattr(torch.ops.mkldnn, "_linear_pointwise", None)
+    supported = getattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", None)
+    if (op is None or supported is None or not torch.backends.mkldnn.is_available()
+            or not supported() or not cpu_has_native_bf16()):
+        return None
+    return op
+
+
+#: ``torch.ops.mkldnn._linear_pointwise`` where it pays (:func:`_fused_op`), else ``None``.
+_POINTWISE: Callable[..., Tensor] | None = _fused_op()
 
 
 def _scaled(weight: Tensor, h: Tensor, scale: float) -> Tensor:
@@ -49,11 +70,14 @@ def linear(weight: Tensor, bias: Tensor, h: Tensor, scale: float = 1.0) -> Tenso
 
 
 def linear_relu(weight: Tensor, bias: Tensor, h: Tensor, scale: float = 1.0) -> Tensor:
-    """``max(0, b + h (s·W)ᵀ)`` → ``[N, out]``, fused without autograd where ``h`` is
-    bf16 on a CPU (module docstring); the weight and bias are cast to bf16 as autocast's
-    ``addmm`` casts them."""
+    """``max(0, b + h (s·W)ᵀ)`` → ``[N, out]``, fused with grad mode off where ``h`` is
+    bf16 on a CPU (module docstring). Under autocast the weight and bias are cast to bf16
+    as autocast's ``addmm`` casts them; without it they must be bf16 already, as
+    ``addmm`` requires."""
     weight = _scaled(weight, h, scale)
+    cast = ((torch.is_autocast_enabled("cpu") and torch.get_autocast_dtype("cpu") == h.dtype)
+            or weight.dtype == bias.dtype == h.dtype)
     if (_POINTWISE is None or torch.is_grad_enabled() or h.device.type != "cpu"
-            or h.dtype != torch.bfloat16):
+            or h.dtype != torch.bfloat16 or not cast):
         return torch.relu(torch.addmm(bias, h, weight.t()))
     return _POINTWISE(h, weight.to(h.dtype), bias.to(h.dtype), "relu", [], "")
