@@ -3,8 +3,6 @@ the authors' layouts and the configs."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -23,6 +21,7 @@ from baselines.grids import (
     upsample_grid,
 )
 from baselines.heads import NGPDecoder, sh4_at_zero_direction
+from eventrecon.sim.pipeline import torch_threads
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 
@@ -31,21 +30,10 @@ CONF = Path(__file__).resolve().parents[1] / "conf"
 def _one_thread():
     """One intra-op thread: the test machine is shared, and OpenMP spinning on an
     oversubscribed 2-core box is ~10x slower than one thread."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
-@contextmanager
-def _threads(n: int) -> Iterator[None]:
-    """Run the block on ``n`` intra-op threads (the ``_one_thread`` fixture's 1 after)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(n)
-    try:
+    with torch_threads(1):
         yield
-    finally:
-        torch.set_num_threads(before)
+
+
 
 
 def _small(kind: str, **kw) -> nn.Module:
@@ -95,7 +83,7 @@ def test_sample_grid_split_over_threads_gives_the_same_values_and_summed_gradien
     weights = torch.randn(shape[0], n, generator=g)
     results = []
     for threads in (1, 2):
-        with _threads(threads):
+        with torch_threads(threads):
             assert grids.cpu_batches(n, grid) == threads
             grid.grad = None
             out = sample_grid(grid, coords, False, "zeros")
@@ -106,7 +94,7 @@ def test_sample_grid_split_over_threads_gives_the_same_values_and_summed_gradien
     assert torch.allclose(grad_one, grad_two, rtol=1e-5, atol=1e-4)
     ref = sample_grid_reference(grid.detach(), coords, False, "zeros")
     assert (two - ref).abs().max().item() <= 1e-5
-    with _threads(2):
+    with torch_threads(2):
         assert grids.cpu_batches(grids.MIN_SPLIT_POINTS - 1, grid) == 1      # too few points
         assert grids.cpu_batches(10 ** 6, grid.to("meta")) == 1              # not a CPU
         big = torch.zeros(1, 300, 300)                 # 90 000 cells: its buffer per entry
@@ -126,7 +114,7 @@ def test_factorised_field_combines_the_split_samples_into_the_one_thread_field(k
     w = torch.randn(n, 4, generator=torch.Generator().manual_seed(5))
     results = []
     for threads in (1, 2):
-        with _threads(threads):
+        with torch_threads(threads):
             assert min(grids.cpu_batches(n, f) for f in field.grids.factors) == threads
             field.zero_grad(set_to_none=True)
             sigma, rgb = field(xyz, t)
