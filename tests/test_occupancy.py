@@ -203,6 +203,36 @@ def test_grid_marks_outside_the_cylinder_empty():
     assert g.occupied(centre, torch.zeros(1, 1)).all()
 
 
+def test_grid_queries_ask_the_density_alone_in_blocks_under_the_image_dtype():
+    """The grid's field queries run as images do: ``density_only`` in blocks of at most
+    ``query_rows`` (the last one padded to a repeated size), fp32 out, and under the run's
+    image dtype (bf16 here, where the CPU has it natively) within bf16's rounding."""
+    from eventrecon.fields import NeRFField
+    from eventrecon.precision import image_autocast
+
+    torch.manual_seed(0)
+    field = NeRFField(depth=2, width=32, skip=-1, pos_bands=4, time_bands=2, remap_width=32,
+                      colour_width=16, anneal_steps=0)
+    r = Renderer(n_coarse=8, n_fine=8, skip="grid", query_rows=1000, **CYL)
+    g = torch.Generator().manual_seed(1)
+    x, t = torch.rand(4200, 3, generator=g) - 0.5, torch.rand(4200, 1, generator=g)
+    rows: list[int] = []
+    alone = field.density_only
+    field.density_only = lambda a, b: (rows.append(a.shape[0]), alone(a, b))[1]
+    with torch.no_grad():
+        reference = field(x, t)[0] * r.cylinder.inside(x, 1.0, tol=1e-5)
+        fp32 = r.masked_density(field, x, t)
+        r.image_dtype = torch.bfloat16
+        bf16 = r.masked_density(field, x, t)
+    assert rows == [1000] * 4 + [256] + [1000] * 4 + [256]     # 200 rows padded to 256
+    assert fp32.dtype == bf16.dtype == torch.float32
+    assert torch.allclose(fp32, reference, rtol=1e-5, atol=1e-7)
+    if isinstance(image_autocast(torch.bfloat16, "cpu"), torch.autocast):
+        assert not torch.equal(bf16, fp32)                          # it ran in bf16
+    rel = ((bf16 - fp32).abs() / fp32.clamp_min(1e-2)).max()
+    assert float(rel) < 0.05 and float(fp32.max()) > 0.1
+
+
 def test_a_fog_below_the_threshold_keeps_its_denser_half_instead_of_emptying_the_grid():
     grid = OccupancyGrid([-1, -1, -1], [1, 1, 1], resolution=4, time_bins=1, threshold=0.01)
     # a thin fog: σ = 0.004 for x < 0, 0.006 for x > 0, everywhere under the threshold 0.01;

@@ -24,6 +24,7 @@ class Field(nn.Module):
 
     Optional hooks, all with neutral defaults:
 
+    - :meth:`density_only` — the density alone, without the colour;
     - :meth:`param_groups` — optimiser groups with per-group learning rates;
     - :meth:`callbacks` — Lightning callbacks with the backbone's own schedule
       (frequency annealing, grid growth with optimiser rebuild, cylinder annealing);
@@ -43,6 +44,12 @@ class Field(nn.Module):
             ``(sigma [N], rgb [N, 3])``: non-negative density and linear colour in [0, 1].
         """
         raise NotImplementedError
+
+    def density_only(self, xyz: Tensor, t: Tensor) -> Tensor:
+        """``σ [N]`` alone, the first output of :meth:`forward` (what the occupancy grid
+        asks). The default runs the whole forward pass; a field whose colour costs work
+        its density does not need overrides it with the same values."""
+        return self(xyz, t)[0]
 
     def param_groups(self, lr: float) -> list[dict[str, Any]]:
         """Optimiser parameter groups; default: one group at ``lr``."""

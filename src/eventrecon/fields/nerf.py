@@ -184,6 +184,27 @@ class NeRFField(Field):
             return torch.index_select(weight, 1, self.skip_order)
         return weight
 
+    def _trunk(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, float]:
+        """The trunk's output ``h [N, width]`` and the scale its activation carries
+        (``2·ReLU`` is ``2 h``, applied by the next layer's weight; module docstring)."""
+        feats = self.features(xyz, t)
+        h, scale = feats, 1.0
+        for i, layer in enumerate(self.layers):
+            h, scale = linear_relu(self.layer_weight(i), layer.bias, h, scale), 2.0
+            if i == self.skip:
+                h, scale = torch.cat([feats, h * 2.0], dim=-1), 1.0
+        return h, scale
+
+    def _density(self, h: Tensor, scale: float) -> Tensor:
+        """``σ [N] = softplus(w_σᵀ (scale·h) + b_σ + shift)``."""
+        sigma = linear(self.density.weight, self.density.bias, h, scale)
+        return F.softplus(sigma.squeeze(-1) + self.density_shift)
+
+    def density_only(self, xyz: Tensor, t: Tensor) -> Tensor:
+        """``σ [N]`` without the colour branch: the same values as :meth:`forward`'s
+        (the same operations on the same trunk output)."""
+        return self._density(*self._trunk(xyz, t))
+
     def forward(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
         """Density and linear colour at ``xyz [N, 3]``, ``t [N, 1]``.
 
@@ -194,14 +215,8 @@ class NeRFField(Field):
         Returns:
             ``(sigma [N] ≥ 0, rgb [N, 3] in (0, 1))``.
         """
-        feats = self.features(xyz, t)
-        h, scale = feats, 1.0                    # the activation is scale·h (module docstring)
-        for i, layer in enumerate(self.layers):
-            h, scale = linear_relu(self.layer_weight(i), layer.bias, h, scale), 2.0
-            if i == self.skip:
-                h, scale = torch.cat([feats, h * 2.0], dim=-1), 1.0
-        sigma = linear(self.density.weight, self.density.bias, h, scale)
-        sigma = F.softplus(sigma.squeeze(-1) + self.density_shift)
+        h, scale = self._trunk(xyz, t)
+        sigma = self._density(h, scale)
         remap = linear(self.colour_remap.weight, self.colour_remap.bias, h, scale)
         hidden = linear_relu(self.colour_hidden.weight, self.colour_hidden.bias, remap)
         rgb = torch.sigmoid(linear(self.colour_out.weight, self.colour_out.bias, hidden, 2.0))

@@ -10,13 +10,14 @@ cuts the extra ones off again, so values and gradients are those of the real sam
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
 from eventrecon.fields.base import Field
 
-__all__ = ["padded_rows", "query_field"]
+__all__ = ["padded_rows", "query_field", "query_density"]
 
 
 def padded_rows(m: int, per_octave: int) -> int:
@@ -54,15 +55,30 @@ def query_field(field: Field, x: Tensor, t: Tensor, per_octave: int = 8, max_row
     µs per sample up to 65 536 rows, 4.1 at 131 072, 4.7 at 524 288), because the
     activations no longer stay in cache. With autograd the call is never split: the
     training step's calls are small, and its numerics stay those of one call."""
+    sigma, rgb = _padded_call(field, x, t, per_octave, max_rows)
+    return sigma, rgb
+
+
+def query_density(field: Field, x: Tensor, t: Tensor, per_octave: int = 8,
+                  max_rows: int = 0) -> Tensor:
+    """``field.density_only(x [M, 3], t [M, 1])`` → ``σ [M]``, padded and split into
+    blocks as :func:`query_field` does (a field may skip its colour for it)."""
+    return _padded_call(field.density_only, x, t, per_octave, max_rows)[0]
+
+
+def _padded_call(fn: Callable[[Tensor, Tensor], Tensor | tuple[Tensor, ...]], x: Tensor,
+                 t: Tensor, per_octave: int, max_rows: int) -> tuple[Tensor, ...]:
+    """``fn`` on :func:`padded_rows` rows (in blocks of ``max_rows`` without autograd),
+    each output cut back to the ``M`` samples; always a tuple."""
     m = x.shape[0]
     if 0 < max_rows < m and not torch.is_grad_enabled():
-        parts = [query_field(field, x[a:a + max_rows], t[a:a + max_rows],   # pad the last
-                             per_octave if a + max_rows >= m else 0)           # block only
+        parts = [_padded_call(fn, x[a:a + max_rows], t[a:a + max_rows],      # pad the last
+                              per_octave if a + max_rows >= m else 0, 0)      # block only
                  for a in range(0, m, max_rows)]
-        return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+        return tuple(torch.cat(outs) for outs in zip(*parts))
     rows = padded_rows(m, per_octave)
     if rows > m:
         x = torch.cat([x, x[:1].expand(rows - m, -1)])
         t = torch.cat([t, t[:1].expand(rows - m, -1)])
-    sigma, rgb = field(x, t)
-    return sigma[:m], rgb[:m]
+    out = fn(x, t)
+    return tuple(o[:m] for o in (out if isinstance(out, tuple) else (out,)))

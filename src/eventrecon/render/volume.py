@@ -40,7 +40,7 @@ from eventrecon.fields.base import Field
 from eventrecon.precision import image_autocast
 from eventrecon.render.clipping import NO_CLIPPING, Cylinder
 from eventrecon.render.occupancy import OccupancyGrid
-from eventrecon.render.queries import query_field
+from eventrecon.render.queries import query_density, query_field
 from eventrecon.render.samplers import pdf_bins, sample_pdf, step_sizes, stratified
 
 if TYPE_CHECKING:
@@ -147,11 +147,10 @@ class Renderer(nn.Module):
         occupancy: arguments of the :class:`OccupancyGrid` (``skip="grid"``).
         march_chunks, stop_transmittance: front-to-back groups of coarse samples and the
             transmittance below which a ray stops (``skip="grid"``).
-        query_buckets: the field is called on row counts rounded up to this many sizes
-            per doubling (:func:`padded_rows`; 0: the exact count). Results are identical.
-        query_rows: renders without autograd (full images, evaluation) send at most this
-            many samples per field call (:func:`~eventrecon.render.queries.query_field`;
-            0: one call per group of samples). Results are the same up to rounding.
+        query_buckets: row counts rounded up to this many sizes per doubling
+            (:func:`~eventrecon.render.queries.padded_rows`; 0: exact; identical results).
+        query_rows: most samples per field call without autograd (images, grid updates;
+            0: no limit; the same up to rounding; :mod:`eventrecon.render.queries`).
     """
 
     def __init__(
@@ -210,17 +209,18 @@ class Renderer(nn.Module):
         return self.occupancy is not None and self.occupancy.active
 
     def masked_density(self, field: Field, x: Tensor, t: Tensor) -> Tensor:
-        """``[N]`` density of ``field`` at ``x [N, 3]``, ``t [N, 1]``, zero outside the full
-        cylinder (what the occupancy grid stores: an annealed ``clip_scale`` masks samples
-        at render time, and must not mark the rest of the cylinder empty for good)."""
+        """``[N]`` density (``Field.density_only``) at ``x [N, 3]``, ``t [N, 1]``, zero
+        outside the full cylinder (an annealed ``clip_scale`` masks samples at render time
+        only), asked as images are: blocks of ``query_rows``, under :meth:`image_autocast`."""
         inside = self.cylinder.inside(x, 1.0, tol=_INSIDE_TOL)
-        return query_field(field, x, t, self.query_buckets)[0] * inside
+        with self.image_autocast(x.device):
+            sigma = query_density(field, x, t, self.query_buckets, self.query_rows)
+        return sigma.float() * inside
 
     def _query(self, field: Field, o: Tensor, d: Tensor, t: Tensor, s: Tensor,
                keep: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Field at ``o + s d`` (``[n, K]`` samples) at time ``t``; σ = 0 outside the
-        cylinder. With ``keep`` (``[n, K]`` bool) only those samples reach the field; the
-        others are ``σ = 0``, ``rgb = 0``."""
+        cylinder. With ``keep`` (``[n, K]`` bool) only those reach the field (σ, rgb = 0)."""
         n, k = s.shape
         pts = o[:, None, :] + s[..., None] * d[:, None, :]
         inside = self.cylinder.inside(pts, self.clip_scale, tol=_INSIDE_TOL)
