@@ -27,6 +27,7 @@ events at ``t_k == t`` included.
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections.abc import Sequence
 
@@ -230,14 +231,34 @@ class DecayedEvents:
         pix = torch.arange(self.n_pixels, device=self.device)
         return self.value(pix, t).reshape(self.n_views, self.height, self.width)
 
-    def window_all(self, t0: float | Tensor, t1: float | Tensor) -> Tensor:
+    def window_all(self, t0: float, t1: float) -> Tensor:
         """``E(t0, t1)`` of every pixel of every view: ``[V, H, W]`` float64.
 
-        Used each iteration to find the pixels with events in the window (about 7 ms
-        for 6×75×100 pixels and 1.8·10^6 events on one CPU thread).
+        Used each iteration to find the pixels with events in the window. Only pixels with
+        an event between the two times can have ``E ≠ 0`` (elsewhere both lookups find the
+        same event, and ``V − V`` is exactly 0), so they alone are looked up: the events
+        in time order make them one slice (:attr:`_time_order`). The same values as
+        :meth:`window` on every pixel, to the bit.
         """
-        pix = torch.arange(self.n_pixels, device=self.device)
-        return self.window(pix, t0, t1).reshape(self.n_views, self.height, self.width)
+        out = torch.zeros(self.n_pixels, dtype=torch.float64, device=self.device)
+        if self.n_events:
+            ranks, pixels = self._time_order
+            r0, r1 = sorted(int(self._rank(t, torch.Size([1]))[0]) for t in (t0, t1))
+            a, b = torch.searchsorted(ranks, torch.tensor([r0, r1], device=self.device),
+                                      right=True).tolist()
+            seen = torch.zeros(self.n_pixels, dtype=torch.bool, device=self.device)
+            seen[pixels[a:b]] = True
+            pix = seen.nonzero().squeeze(1)
+            out[pix] = self.window(pix, t0, t1)
+        return out.reshape(self.n_views, self.height, self.width)
+
+    @functools.cached_property
+    def _time_order(self) -> tuple[Tensor, Tensor]:
+        """The events in time order: ``rank + 1`` (the ``r`` of :meth:`_lookup` from which
+        an event counts) ascending, and each event's pixel (``[n]`` int64 each)."""
+        stride = self.times.shape[0] + 1
+        ranks, order = torch.sort(self.keys % stride, stable=True)
+        return ranks, self.keys[order] // stride
 
     def _check_pix(self, pix: Tensor) -> Tensor:
         pix = pix.to(device=self.device, dtype=torch.int64)
