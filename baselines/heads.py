@@ -15,7 +15,7 @@ from torch import Tensor, nn
 
 from eventrecon.fields.base import trunc_exp
 
-__all__ = ["activate", "bias_free_mlp", "sh4_at_zero_direction", "NGPDecoder"]
+__all__ = ["activate", "activate_density", "bias_free_mlp", "sh4_at_zero_direction", "NGPDecoder"]
 
 
 def activate(raw_sigma: Tensor, raw_rgb: Tensor) -> tuple[Tensor, Tensor]:
@@ -28,7 +28,12 @@ def activate(raw_sigma: Tensor, raw_rgb: Tensor) -> tuple[Tensor, Tensor]:
     Returns:
         ``(sigma [N] >= 0, rgb [N, 3] in [0, 1])``.
     """
-    return trunc_exp(raw_sigma.float()), raw_rgb.float().sigmoid()
+    return activate_density(raw_sigma), raw_rgb.float().sigmoid()
+
+
+def activate_density(raw_sigma: Tensor) -> Tensor:
+    """:func:`activate`'s density alone: ``trunc_exp(raw_sigma)`` in float32 (``[N]``)."""
+    return trunc_exp(raw_sigma.float())
 
 
 def bias_free_mlp(in_dim: int, hidden: int, n_hidden: int, out_dim: int) -> nn.Sequential:
@@ -91,3 +96,8 @@ class NGPDecoder(nn.Module):
         h = self.density_net(feat)
         sh = self.direction_features.to(h.dtype).expand(h.shape[0], -1)
         return activate(h[:, 0], self.colour_net(torch.cat([sh, h[:, 1:]], dim=-1)))
+
+    def density(self, feat: Tensor) -> Tensor:
+        """``feat [N, F] -> sigma [N]``: the density MLP alone, :meth:`forward`'s density
+        to the bit without the colour MLP (26 → 64 → 64 → 3, the larger of the two)."""
+        return activate_density(self.density_net(feat)[:, 0])

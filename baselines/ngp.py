@@ -281,8 +281,16 @@ class NGPField(Field):
 
     def forward(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
         """``xyz [N, 3], t [N, 1] -> (sigma [N], rgb [N, 3])``."""
-        u = torch.cat([(xyz + 1.0) * 0.5, t.reshape(-1, 1).to(xyz.dtype)], dim=-1)
-        return self.decoder(self.encoding(u))
+        return self.decoder(self.encoding(self._unit(xyz, t)))
+
+    def density_only(self, xyz: Tensor, t: Tensor) -> Tensor:
+        """``sigma [N]`` without the colour MLP: :meth:`forward`'s density, to the bit."""
+        return self.decoder.density(self.encoding(self._unit(xyz, t)))
+
+    @staticmethod
+    def _unit(xyz: Tensor, t: Tensor) -> Tensor:
+        """``[N, 4]`` encoder input ``((x + 1) / 2, t)``: the unit cube and time."""
+        return torch.cat([(xyz + 1.0) * 0.5, t.reshape(-1, 1).to(xyz.dtype)], dim=-1)
 
     def callbacks(self) -> list[Any]:
         """The cylinder's density mask annealed over the first ``anneal_steps`` steps."""
