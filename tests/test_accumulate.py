@@ -134,6 +134,8 @@ def test_zero_events_everywhere_and_in_one_view() -> None:
     ev = DecayedEvents.from_streams([EventStream.empty(), EventStream.empty()], H, W, 0.93)
     assert ev.n_events == 0
     assert torch.count_nonzero(ev.window_all(0.0, 1000.0)) == 0
+    with pytest.raises(InputError, match="NaN"):           # a NaN time is an error even here
+        ev.window_all(float("nan"), 1000.0)
     rng = np.random.default_rng(4)
     streams = [EventStream.empty()] + random_streams(rng, 1, 50)
     ev = DecayedEvents.from_streams(streams, H, W, 1.0)

@@ -127,7 +127,9 @@ def _pays_on(dtype: Any, device_type: str | None) -> bool:
 def image_dtype(render_cfg: Mapping[str, Any], precision: str | int | None,
                 device_type: str | None = None) -> Any:
     """The autocast dtype of a run's renders without gradients (held-out images, curve
-    points): :func:`mixed_dtype` of the run's ``precision``, as the authors render their
+    points) and of its occupancy grid's density queries (``Renderer.masked_density``;
+    measured in bf16 on CPUs only, session 47): :func:`mixed_dtype` of the run's
+    ``precision``, as the authors render their
     test images under the AMP they train with (``render_single_image.py``). ``None`` (fp32)
     where ``render.image_autocast`` is false, and on a CPU (``device_type`` "cpu") for
     fp16 or for bf16 without native bf16 (both slow there). On a 2-core AMX Xeon, bf16 made

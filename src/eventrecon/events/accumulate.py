@@ -241,11 +241,11 @@ class DecayedEvents:
         :meth:`window` on every pixel, to the bit.
         """
         out = torch.zeros(self.n_pixels, dtype=torch.float64, device=self.device)
+        r0, r1 = sorted(int(self._rank(t, torch.Size([1]))[0]) for t in (t0, t1))
         if self.n_events:
             ranks, pixels = self._time_order
-            r0, r1 = sorted(int(self._rank(t, torch.Size([1]))[0]) for t in (t0, t1))
-            a, b = torch.searchsorted(ranks, torch.tensor([r0, r1], device=self.device),
-                                      right=True).tolist()
+            bounds = torch.tensor([r0, r1], dtype=ranks.dtype, device=self.device)
+            a, b = torch.searchsorted(ranks, bounds, right=True).tolist()
             seen = torch.zeros(self.n_pixels, dtype=torch.bool, device=self.device)
             seen[pixels[a:b]] = True
             pix = seen.nonzero().squeeze(1)
@@ -255,10 +255,13 @@ class DecayedEvents:
     @functools.cached_property
     def _time_order(self) -> tuple[Tensor, Tensor]:
         """The events in time order: ``rank + 1`` (the ``r`` of :meth:`_lookup` from which
-        an event counts) ascending, and each event's pixel (``[n]`` int64 each)."""
+        an event counts) ascending, and each event's pixel (``[n]`` each; int32 where
+        both fit, 8 bytes per event kept for the object's life, else int64)."""
         stride = self.times.shape[0] + 1
+        small = max(stride, self.n_pixels) < 2**31
         ranks, order = torch.sort(self.keys % stride, stable=True)
-        return ranks, self.keys[order] // stride
+        pixels = self.keys[order] // stride
+        return (ranks.int(), pixels.int()) if small else (ranks, pixels)
 
     def _check_pix(self, pix: Tensor) -> Tensor:
         pix = pix.to(device=self.device, dtype=torch.int64)

@@ -55,8 +55,7 @@ def query_field(field: Field, x: Tensor, t: Tensor, per_octave: int = 8, max_row
     µs per sample up to 65 536 rows, 4.1 at 131 072, 4.7 at 524 288), because the
     activations no longer stay in cache. With autograd the call is never split: the
     training step's calls are small, and its numerics stay those of one call."""
-    sigma, rgb = _padded_call(field, x, t, per_octave, max_rows)
-    return sigma, rgb
+    return _padded_call(field, x, t, per_octave, max_rows)  # type: ignore[return-value]
 
 
 def query_density(field: Field, x: Tensor, t: Tensor, per_octave: int = 8,
@@ -68,8 +67,9 @@ def query_density(field: Field, x: Tensor, t: Tensor, per_octave: int = 8,
 
 def _padded_call(fn: Callable[[Tensor, Tensor], Tensor | tuple[Tensor, ...]], x: Tensor,
                  t: Tensor, per_octave: int, max_rows: int) -> tuple[Tensor, ...]:
-    """``fn`` on :func:`padded_rows` rows (in blocks of ``max_rows`` without autograd),
-    each output cut back to the ``M`` samples; always a tuple."""
+    """``fn(x [M, 3], t [M, 1])`` on :func:`padded_rows` rows (in blocks of ``max_rows``
+    without autograd), each output (``[rows, …]``) cut back to ``[M, …]``; always a
+    tuple of them."""
     m = x.shape[0]
     if 0 < max_rows < m and not torch.is_grad_enabled():
         parts = [_padded_call(fn, x[a:a + max_rows], t[a:a + max_rows],      # pad the last
