@@ -3,6 +3,7 @@ render beats a constant colour, segments cross-fade, TensorBoard and checkpoints
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -318,6 +319,33 @@ def test_renderers_take_the_runs_mixed_precision_for_images_and_the_record_says_
     assert records.run_info(fp16, {})["image_autocast"] is False
     monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda: False)
     assert records.run_info(cfg, {})["image_autocast"] is False
+
+
+def test_adamw_runs_fused_with_the_unfused_update_up_to_rounding(data_dir: Path):
+    """The module's AdamW is the fused kernel on CPU parameters; over 30 steps of random
+    gradients its parameters stay within rounding of the loop implementation's."""
+    cfg = tiny_config(data_dir)
+    props = build.scene_properties(cfg, build.load_dataset(cfg))
+    m = build.build_module(cfg, props, None, Segment(0, 1000))
+    reference = copy.deepcopy(m.field)
+    fused = m.configure_optimizers()
+    assert fused.defaults["fused"] is True
+    loop = torch.optim.AdamW(reference.parameters(), lr=fused.defaults["lr"],
+                             betas=fused.defaults["betas"], eps=fused.defaults["eps"],
+                             weight_decay=fused.defaults["weight_decay"], foreach=False)
+    start = [p.detach().clone() for p in reference.parameters()]
+    g = torch.Generator().manual_seed(3)
+    for _ in range(30):
+        for a, b in zip(m.field.parameters(), reference.parameters()):
+            a.grad = torch.randn(a.shape, generator=g)
+            b.grad = a.grad.clone()
+        fused.step()
+        loop.step()
+    moved = min(float((b - b0).abs().max()) for b, b0 in zip(reference.parameters(), start))
+    diff = max(float((a - b).abs().max())
+               for a, b in zip(m.field.parameters(), reference.parameters()))
+    assert moved > fused.defaults["lr"]                # every tensor took real steps ...
+    assert diff <= 1e-3 * moved                        # ... the same ones, up to rounding
 
 
 def test_betas_power_raises_adams_betas_and_the_record_and_tables_say_so(data_dir: Path,
