@@ -129,8 +129,8 @@ def image_dtype(render_cfg: Mapping[str, Any], precision: str | int | None,
     """The autocast dtype of a run's renders without gradients (held-out images, curve
     points) and of its occupancy grid's density queries (``Renderer.masked_density``;
     measured in bf16 on CPUs only, session 47): :func:`mixed_dtype` of the run's
-    ``precision``, as the authors render their
-    test images under the AMP they train with (``render_single_image.py``). ``None`` (fp32)
+    ``precision``, as the authors render their test images under the AMP they train
+    with (``render_single_image.py``). ``None`` (fp32)
     where ``render.image_autocast`` is false, and on a CPU (``device_type`` "cpu") for
     fp16 or for bf16 without native bf16 (both slow there). On a 2-core AMX Xeon, bf16 made
     the default run's held-out evaluation 1.29× faster and moved its PSNR by 0.001 dB
