@@ -41,6 +41,7 @@ from baselines.factorised import FactorisedField
 from baselines.grids import sample_grid_reference
 from eventrecon import build
 from eventrecon.fields.base import Field
+from eventrecon.module import adamw_fused
 from eventrecon.render.clipping import Cylinder
 
 log = logging.getLogger("benchmarks.fields")
@@ -101,7 +102,8 @@ def max_difference(a: Field, b: Field, n: int = 2048) -> float:
 def time_steps(field: Field, lr: float, n: int, reps: int, warmup: int = 2
                ) -> tuple[float, float]:
     """Median seconds of one training step on ``n`` random samples; also the first step's."""
-    opt = torch.optim.AdamW(field.param_groups(lr), lr=lr)
+    groups = field.param_groups(lr)
+    opt = torch.optim.AdamW(groups, lr=lr, fused=adamw_fused(groups))   # as training's
     xyz, t = random_samples(n)
 
     def step() -> None:

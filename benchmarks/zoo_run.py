@@ -29,7 +29,7 @@ from torch import Tensor
 
 from eventrecon.callbacks import HeldOutMonitor
 from eventrecon.losses import total_loss
-from eventrecon.module import EventNeRFModule, step_generator
+from eventrecon.module import EventNeRFModule, adamw_fused, step_generator
 from eventrecon.render.cameras import ring_rig
 
 log = logging.getLogger("benchmarks.zoo")
@@ -238,9 +238,10 @@ def time_steps(module: EventNeRFModule, step0: int, warmup: int, reps: int, seed
     field.train()
     opt = module.configure_optimizers()
     bare_field = copy.deepcopy(field)
-    bare_opt = torch.optim.AdamW(bare_field.param_groups(cfg_s.lr), lr=cfg_s.lr,
-                                 weight_decay=cfg_s.weight_decay, betas=cfg_s.betas,
-                                 eps=cfg_s.eps)
+    bare_groups = bare_field.param_groups(cfg_s.lr)
+    bare_opt = torch.optim.AdamW(bare_groups, lr=cfg_s.lr, weight_decay=cfg_s.weight_decay,
+                                 betas=cfg_s.betas, eps=cfg_s.eps,
+                                 fused=adamw_fused(bare_groups))   # as the module's
     grid = module.renderer.occupancy
     counter = SampleCounter(field)
     dev = module.device
