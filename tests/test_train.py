@@ -297,6 +297,38 @@ def test_lr_warms_up_linearly_then_decays(data_dir: Path):
                            Segment(0, 1000))
 
 
+def test_a_late_decay_holds_the_lr_then_decays_and_the_record_and_tables_say_so(
+        data_dir: Path, tmp_path: Path):
+    cfg = tiny_config(data_dir, "trainer.max_steps=8", "trainer.lr_end_factor=0.1",
+                      "trainer.lr_decay_start=0.5")
+    lr0 = float(cfg.model.optim.lr)
+    # constant over the first 4 of 8 steps, then lr0 · 0.1^((s − 4) / 4)
+    assert _lr_per_step(cfg) == pytest.approx(
+        [lr0] * 5 + [lr0 * 0.1 ** ((s - 4) / 4) for s in (5, 6, 7)], rel=1e-9)
+    assert records.run_info(cfg, {})["lr_decay_start"] == 0.5
+    from eventrecon.report.cells import method_notes
+    from eventrecon.report.runs import _job, collect_runs
+    from eventrecon.summary import format_summary
+    info = {**records.run_info(cfg, {}), "status": "ok", "psnr": 25.0}
+    records.write_metrics(tmp_path / "r" / "0", info)
+    notes = " ".join(method_notes(collect_runs([tmp_path / "r"])))
+    assert "decayed exponentially to 0.1× of its start by the last step" in notes
+    assert "from 0.5 of the steps on (trainer.lr_decay_start)" in notes
+    assert "lr decayed to 0.1× by the last step from 0.5 of the steps on" in \
+        format_summary(info, tmp_path)
+    # a record from before the key existed stands for a decay from the first step
+    old = {k: v for k, v in info.items() if k != "lr_decay_start"}
+    records.write_metrics(tmp_path / "o" / "0", {**old, "lr_decay_start": 0.0})
+    records.write_metrics(tmp_path / "o" / "1", old)
+    a, b = collect_runs([tmp_path / "o"])
+    assert _job(a) == _job(b)
+    props = build.scene_properties(cfg, build.load_dataset(cfg))
+    for bad in ("1.0", "-0.1", "true"):
+        with pytest.raises(InputError, match=r"trainer\.lr_decay_start"):
+            build.build_module(tiny_config(data_dir, f"trainer.lr_decay_start={bad}"), props,
+                               None, Segment(0, 1000))
+
+
 def test_renderers_take_the_runs_mixed_precision_for_images_and_the_record_says_so(
         data_dir: Path, monkeypatch) -> None:
     from eventrecon import precision

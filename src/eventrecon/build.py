@@ -209,6 +209,28 @@ def lr_warmup(cfg: DictConfig) -> int:
     return value
 
 
+def lr_decay_start(cfg: DictConfig) -> float:
+    """``trainer.lr_decay_start``: the share of a segment's steps before the lr starts to
+    decay (0: from the first step); an :class:`InputError` unless it lies in ``[0, 1)``.
+
+    >>> lr_decay_start(OmegaConf.create({"trainer": {"lr_decay_start": 0.6}}))
+    0.6
+    >>> try:
+    ...     lr_decay_start(OmegaConf.create({"trainer": {"lr_decay_start": 1}}))
+    ... except InputError as e:
+    ...     print(e.field)
+    trainer.lr_decay_start
+    """
+    value = cfg.trainer.get("lr_decay_start", 0.0)
+    try:
+        a = float(value)
+    except (TypeError, ValueError):
+        a = math.nan
+    if isinstance(value, bool) or not 0.0 <= a < 1.0:
+        raise InputError("config", "trainer.lr_decay_start", "a number in [0, 1)", value)
+    return a
+
+
 def adam_betas(cfg: DictConfig) -> tuple[float, float]:
     r"""Adam's ``(β1, β2)`` for ``cfg.model.optim``: its ``betas`` (PyTorch's ``(0.9,
     0.999)``, the authors', unless the backbone names its own) raised to the power
@@ -266,7 +288,8 @@ def build_module(cfg: DictConfig, props: SceneProperties, train: SplitData | Non
                       eps=float(optim.get("eps", 1e-8)),
                       max_nonfinite=cfg.trainer.max_nonfinite, log_every=cfg.trainer.log_every,
                       seed=cfg.seed + 1000 * k, max_steps=int(cfg.trainer.max_steps),
-                      lr_end_factor=lr_end_factor(cfg), lr_warmup=lr_warmup(cfg))
+                      lr_end_factor=lr_end_factor(cfg), lr_warmup=lr_warmup(cfg),
+                      lr_decay_start=lr_decay_start(cfg))
     renderer = build_renderer(cfg.render, props, run_precision(cfg))
     field.set_scene_box(*renderer.cylinder.box())
     return EventNeRFModule(field, renderer, batcher, build_loss(cfg.loss, props), step)

@@ -69,16 +69,22 @@ class StepConfig:
     max_steps: int = 1
     lr_end_factor: float = 1.0
     lr_warmup: int = 0
+    lr_decay_start: float = 0.0
 
 
-def lr_factor(step: int, max_steps: int, end_factor: float, warmup: int = 0) -> float:
-    r"""The learning-rate multiplier at ``step`` of a segment of ``max_steps`` steps.
+def lr_factor(step: int, max_steps: int, end_factor: float, warmup: int = 0,
+              decay_start: float = 0.0) -> float:
+    r"""The learning-rate multiplier at ``step`` of a segment of ``max_steps = S`` steps.
 
-    A linear warm-up over the first ``W = warmup`` steps times an exponential decay,
-    :math:`\min(1, s/W)\cdot f^{\,\min(s, S)/S}`: the decay is 1 at step 0 and reaches
-    ``end_factor = f`` at step ``S``. The warm-up is the authors' scheduler's ``it/4000``
-    (``use_lr_scheduler``, which their runs switch off); ``W = 0`` and ``f = 1`` keep the
-    lr constant, as their runs do.
+    A linear warm-up over the first ``W = warmup`` steps times an exponential decay that
+    starts at step :math:`s_0 = a S` (``a = decay_start``),
+
+    .. math:: \min(1, s/W)\cdot f^{\,\mathrm{clip}((s - s_0)/(S - s_0),\ 0,\ 1)}:
+
+    the decay is 1 up to step :math:`s_0` and reaches ``end_factor = f`` at step ``S``
+    (``a = 0``: over the whole segment). The warm-up is the authors' scheduler's
+    ``it/4000`` (``use_lr_scheduler``, which their runs switch off); ``W = 0`` and
+    ``f = 1`` keep the lr constant, as their runs do.
 
     >>> [round(lr_factor(s, 100, 0.1), 4) for s in (0, 50, 100)]
     [1.0, 0.3162, 0.1]
@@ -86,11 +92,15 @@ def lr_factor(step: int, max_steps: int, end_factor: float, warmup: int = 0) -> 
     1.0
     >>> [lr_factor(s, 100, 1.0, warmup=4) for s in (0, 1, 3, 4, 50)]
     [0.0, 0.25, 0.75, 1.0, 1.0]
+    >>> [round(lr_factor(s, 100, 0.1, decay_start=0.5), 4) for s in (0, 50, 75, 100)]
+    [1.0, 1.0, 0.3162, 0.1]
     """
     warm = min(1.0, step / warmup) if warmup > 0 else 1.0
     if end_factor == 1.0 or max_steps <= 0:
         return float(warm)
-    return float(warm * end_factor ** (min(step, max_steps) / max_steps))
+    start = decay_start * max_steps
+    progress = min(max(step - start, 0.0) / (max_steps - start), 1.0)
+    return float(warm * end_factor ** progress)
 
 
 def adamw_fused(groups: list[dict[str, Any]]) -> bool:
@@ -155,7 +165,7 @@ class EventNeRFModule(L.LightningModule):
         fused pass per parameter where the devices allow (:func:`adamw_fused`). Each group
         keeps its own lr as ``base_lr``; :meth:`training_step` scales it by
         :func:`lr_factor` (constant unless ``trainer.lr_end_factor < 1`` or
-        ``trainer.lr_warmup > 0``)."""
+        ``trainer.lr_warmup > 0``; ``trainer.lr_decay_start`` delays the decay)."""
         cfg = self.step_cfg
         groups = self.field.param_groups(cfg.lr)
         for g in groups:
@@ -168,7 +178,8 @@ class EventNeRFModule(L.LightningModule):
         cfg = self.step_cfg
         if cfg.lr_end_factor == 1.0 and cfg.lr_warmup <= 0:
             return
-        f = lr_factor(step, cfg.max_steps, cfg.lr_end_factor, cfg.lr_warmup)
+        f = lr_factor(step, cfg.max_steps, cfg.lr_end_factor, cfg.lr_warmup,
+                      cfg.lr_decay_start)
         for opt in self.trainer.optimizers:
             for g in opt.param_groups:
                 g["lr"] = g.get("base_lr", g["lr"]) * f

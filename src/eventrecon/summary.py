@@ -54,6 +54,8 @@ def format_summary(metrics: Mapping[str, Any], out_dir: str | Path) -> str:
                f"size conf/sizing/{metrics['sizing']}.yaml" if metrics.get("sizing") else "",
                "empty-space skipping" if metrics.get("skip") == "grid" else "",
                f"lr decayed to {metrics['lr_end_factor']:g}× by the last step"
+               + (f" from {metrics['lr_decay_start']:g} of the steps on"
+                  if metrics.get("lr_decay_start") else "")
                if metrics.get("lr_end_factor") not in (None, 1.0) else "",
                "bf16 autocast" if metrics.get("precision") == "bf16-mixed" else "",
                f"lr warmed up over {metrics['lr_warmup']} steps" if metrics.get("lr_warmup")

@@ -125,10 +125,15 @@ def method_notes(runs: Sequence[Run]) -> list[str]:
     decays = sorted({float(r.record["lr_end_factor"]) for r in runs
                      if r.record.get("lr_end_factor") not in (None, 1.0)})
     if decays:
+        starts = sorted({float(r.record.get("lr_decay_start") or 0.0) for r in runs
+                         if r.record.get("lr_end_factor") not in (None, 1.0)})
         notes.append("Learning rate decayed exponentially to "
                      + ", ".join(f"{d:g}×" for d in decays)
                      + " of its start by the last step (trainer.lr_end_factor; the authors "
-                       "keep it constant).")
+                       "keep it constant)"
+                     + ("" if starts == [0.0] else ", from " + ", ".join(
+                         f"{a:g}" for a in starts) + " of the steps on (trainer.lr_decay_start)")
+                     + ".")
     precisions = Counter(r.record.get("precision") for r in runs if r.record.get("precision"))
     if precisions.get("bf16-mixed"):
         notes.append(f"bf16 autocast on the CPU in {precisions['bf16-mixed']} of "
