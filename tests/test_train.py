@@ -273,7 +273,8 @@ def _lr_per_step(cfg) -> list[float]:
 
 
 def test_lr_decays_exponentially_to_the_end_factor(data_dir: Path):
-    cfg = tiny_config(data_dir, "trainer.max_steps=8", "trainer.lr_end_factor=0.1")
+    cfg = tiny_config(data_dir, "trainer.max_steps=8", "trainer.lr_end_factor=0.1",
+                      "trainer.lr_decay_start=0")
     lr0 = float(cfg.model.optim.lr)
     # lr_s = lr0 · 0.1^(s / 8): 1× at the first step, 0.1^(7/8)× at the last of 8
     assert _lr_per_step(cfg) == pytest.approx([lr0 * 0.1 ** (s / 8) for s in range(8)],
@@ -286,7 +287,7 @@ def test_lr_decays_exponentially_to_the_end_factor(data_dir: Path):
 
 def test_lr_warms_up_linearly_then_decays(data_dir: Path):
     cfg = tiny_config(data_dir, "trainer.max_steps=8", "trainer.lr_warmup=4",
-                      "trainer.lr_end_factor=0.5")
+                      "trainer.lr_end_factor=0.5", "trainer.lr_decay_start=0")
     lr0 = float(cfg.model.optim.lr)
     # lr_s = lr0 · min(1, s/4) · 0.5^(s/8): 0 at the first step (the authors' it/4000)
     assert _lr_per_step(cfg) == pytest.approx(
@@ -306,6 +307,9 @@ def test_a_late_decay_holds_the_lr_then_decays_and_the_record_and_tables_say_so(
     assert _lr_per_step(cfg) == pytest.approx(
         [lr0] * 5 + [lr0 * 0.1 ** ((s - 4) / 4) for s in (5, 6, 7)], rel=1e-9)
     assert records.run_info(cfg, {})["lr_decay_start"] == 0.5
+    # without a decay its start changes nothing, and the record says 0 (the tables' jobs)
+    assert records.run_info(tiny_config(data_dir, "trainer.lr_end_factor=1.0",
+                                        "trainer.lr_decay_start=0.5"), {})["lr_decay_start"] == 0
     from eventrecon.report.cells import method_notes
     from eventrecon.report.runs import _job, collect_runs
     from eventrecon.summary import format_summary

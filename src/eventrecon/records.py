@@ -123,7 +123,9 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
             "sizing": sizing_choice(), "method_version": METHOD_VERSION,
             "lr_end_factor": float(cfg.trainer.get("lr_end_factor", 1.0)),
             "lr_warmup": int(cfg.trainer.get("lr_warmup", 0)),
-            "lr_decay_start": float(cfg.trainer.get("lr_decay_start", 0.0)),
+            # where the decay starts; 0 when the lr does not decay (then it changes nothing)
+            "lr_decay_start": float(cfg.trainer.get("lr_decay_start", 0.0))
+            if float(cfg.trainer.get("lr_end_factor", 1.0)) != 1.0 else 0.0,
             "betas_power": float((cfg.model.get("optim", {}) or {}).get("betas_power", 1.0)),
             "precision": str(precision),
             # held-out images rendered under that precision's autocast (records without the
