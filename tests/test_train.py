@@ -317,8 +317,8 @@ def test_a_late_decay_holds_the_lr_then_decays_and_the_record_and_tables_say_so(
     records.write_metrics(tmp_path / "r" / "0", info)
     notes = " ".join(method_notes(collect_runs([tmp_path / "r"])))
     assert "decayed exponentially to 0.1× of its start by the last step" in notes
-    assert "from 0.5 of the steps on (trainer.lr_decay_start)" in notes
-    assert "lr decayed to 0.1× by the last step from 0.5 of the steps on" in \
+    assert "after a constant lr for the first 50% of the steps (trainer.lr_decay_start)" in notes
+    assert "lr held for the first 50% of the steps, then decayed to 0.1× by the last step" in \
         format_summary(info, tmp_path)
     # a record from before the key existed stands for a decay from the first step
     old = {k: v for k, v in info.items() if k != "lr_decay_start"}

@@ -53,9 +53,9 @@ def format_summary(metrics: Mapping[str, Any], out_dir: str | Path) -> str:
     changed = ["schedules compressed" if metrics.get("schedule") == "compressed" else "",
                f"size conf/sizing/{metrics['sizing']}.yaml" if metrics.get("sizing") else "",
                "empty-space skipping" if metrics.get("skip") == "grid" else "",
-               f"lr decayed to {metrics['lr_end_factor']:g}× by the last step"
-               + (f" from {metrics['lr_decay_start']:g} of the steps on"
-                  if metrics.get("lr_decay_start") else "")
+               (f"lr held for the first {metrics['lr_decay_start']:.0%} of the steps, then"
+                if metrics.get("lr_decay_start") else "lr")
+               + f" decayed to {metrics['lr_end_factor']:g}× by the last step"
                if metrics.get("lr_end_factor") not in (None, 1.0) else "",
                "bf16 autocast" if metrics.get("precision") == "bf16-mixed" else "",
                f"lr warmed up over {metrics['lr_warmup']} steps" if metrics.get("lr_warmup")

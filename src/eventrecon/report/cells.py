@@ -131,8 +131,9 @@ def method_notes(runs: Sequence[Run]) -> list[str]:
                      + ", ".join(f"{d:g}×" for d in decays)
                      + " of its start by the last step (trainer.lr_end_factor; the authors "
                        "keep it constant)"
-                     + ("" if starts == [0.0] else ", from " + ", ".join(
-                         f"{a:g}" for a in starts) + " of the steps on (trainer.lr_decay_start)")
+                     + ("" if starts == [0.0] else ", after a constant lr for the first "
+                        + ", ".join(f"{a:.0%}" for a in starts)
+                        + " of the steps (trainer.lr_decay_start)")
                      + ".")
     precisions = Counter(r.record.get("precision") for r in runs if r.record.get("precision"))
     if precisions.get("bf16-mixed"):
