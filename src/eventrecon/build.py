@@ -168,6 +168,17 @@ def build_loss(loss_cfg: DictConfig, props: SceneProperties) -> LossConfig:
                        eps=props.tonemap_eps, theta=props.threshold)
 
 
+def _as_number(value: Any) -> float:
+    """``value`` as a float; NaN (which fails every range check) for a bool or a
+    non-number, so a validator raises one :class:`InputError` for both."""
+    if isinstance(value, bool):
+        return math.nan
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
 def lr_end_factor(cfg: DictConfig) -> float:
     """``trainer.lr_end_factor``: the lr at a segment's last step over its first (1 = a
     constant lr, the authors'); an :class:`InputError` unless it lies in ``(0, 1]``.
@@ -181,10 +192,7 @@ def lr_end_factor(cfg: DictConfig) -> float:
     trainer.lr_end_factor
     """
     value = cfg.trainer.get("lr_end_factor", 1.0)
-    try:
-        f = float(value)
-    except (TypeError, ValueError):
-        f = math.nan
+    f = _as_number(value)
     if not 0.0 < f <= 1.0:
         raise InputError("config", "trainer.lr_end_factor", "a number in (0, 1]", value)
     return f
@@ -222,11 +230,8 @@ def lr_decay_start(cfg: DictConfig) -> float:
     trainer.lr_decay_start
     """
     value = cfg.trainer.get("lr_decay_start", 0.0)
-    try:
-        a = float(value)
-    except (TypeError, ValueError):
-        a = math.nan
-    if isinstance(value, bool) or not 0.0 <= a < 1.0:
+    a = _as_number(value)
+    if not 0.0 <= a < 1.0:
         raise InputError("config", "trainer.lr_decay_start", "a number in [0, 1)", value)
     return a
 
@@ -258,11 +263,8 @@ def adam_betas(cfg: DictConfig) -> tuple[float, float]:
         b1 = b2 = math.nan
     if not (0.0 <= b1 < 1.0 and 0.0 <= b2 < 1.0):
         raise InputError("config", "model.optim.betas", "two numbers in [0, 1)", betas)
-    try:
-        k = float(power)
-    except (TypeError, ValueError):
-        k = math.nan
-    if isinstance(power, bool) or not k > 0.0 or not math.isfinite(k):
+    k = _as_number(power)
+    if not k > 0.0 or not math.isfinite(k):
         raise InputError("config", "model.optim.betas_power", "a number > 0", power)
     return b1 ** k, b2 ** k
 
