@@ -303,7 +303,7 @@ def test_a_late_decay_holds_the_lr_then_decays_and_the_record_and_tables_say_so(
     cfg = tiny_config(data_dir, "trainer.max_steps=8", "trainer.lr_end_factor=0.1",
                       "trainer.lr_decay_start=0.5")
     lr0 = float(cfg.model.optim.lr)
-    # constant over the first 4 of 8 steps, then lr0 · 0.1^((s − 4) / 4)
+    # constant up to step 4 = 0.5 · 8 (steps 0-4), then lr0 · 0.1^((s − 4) / 4)
     assert _lr_per_step(cfg) == pytest.approx(
         [lr0] * 5 + [lr0 * 0.1 ** ((s - 4) / 4) for s in (5, 6, 7)], rel=1e-9)
     assert records.run_info(cfg, {})["lr_decay_start"] == 0.5
