@@ -7,6 +7,7 @@ import torch
 from torch import Tensor, nn
 
 from baselines import HexPlaneField
+from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.render.occupancy import OccupancyGrid
 from eventrecon.render.volume import Renderer
@@ -63,14 +64,17 @@ def test_unasked_grid_skips_nothing_and_the_render_equals_the_dense_one():
     assert (a - b).abs().max().item() <= 2e-4  # only the transmittance stop differs
 
 
-@pytest.mark.parametrize("recheck", [1.0, 0.25])
-def test_no_sample_above_the_threshold_is_skipped(recheck: float):
+@pytest.mark.parametrize(("recheck", "time_bins", "dilation"),
+                         [(1.0, 8, (1, 1)), (0.25, 8, (1, 1)), (0.25, 16, (1, 0))])
+def test_no_sample_above_the_threshold_is_skipped(recheck: float, time_bins: int,
+                                                  dilation: tuple[int, int]):
     """Against a dense reference: every point whose density exceeds the threshold lies in
     an occupied cell (random points over the box and times), also when only a share of
-    the occupied cells is re-asked at each update."""
+    the occupied cells is re-asked at each update, and without dilation in time where the
+    blob moves less than a cell per bin (0.6 / 16 against cells 1/24 of the box)."""
     field = Blob()
-    r = _with_grid(field, resolution=24, time_bins=8, threshold=0.05, fraction=1.0,
-                   recheck=recheck)
+    r = _with_grid(field, resolution=24, time_bins=time_bins, threshold=0.05, fraction=1.0,
+                   recheck=recheck, dilation=dilation)
     g = torch.Generator().manual_seed(9)
     lo, hi = r.occupancy.lo, r.occupancy.hi
     x = lo + torch.rand(400_000, 3, generator=g) * (hi - lo)
@@ -278,3 +282,28 @@ def test_rechecking_a_share_of_the_occupied_cells_costs_that_share_and_forgets_a
                 break
     assert emptied[1.0] == 90
     assert 60 <= emptied[0.25] <= 180
+
+
+@pytest.mark.parametrize("dilation", [(0, 0), (1, 0), (0, 1), (1, 1), (2, 1), (1, 3)])
+def test_dilation_widens_occupancy_by_its_cells_in_space_and_bins_in_time(dilation):
+    """One dense cell: the occupied cells are exactly those within ``s`` cells of it in
+    every axis and ``b`` bins in time (an independent reference from the indices)."""
+    s, b = dilation
+    g = OccupancyGrid([-1, -1, -1], [1, 1, 1], resolution=8, time_bins=5, threshold=0.5,
+                      dilation=dilation)
+    g.asked.fill_(True)
+    g.density[3, 1, 6, 4] = 1.0
+    g.refresh()
+    idx = torch.stack(torch.meshgrid(*(torch.arange(n) for n in g.occ.shape), indexing="ij"))
+    far = (idx - torch.tensor([3, 1, 6, 4])[:, None, None, None, None]).abs()
+    expected = (far[0] <= b) & (far[1:] <= s).all(0)
+    assert torch.equal(g.occ, expected)
+    # counted by hand: cells clipped at the box's faces, bins at the clip's ends
+    assert int(g.occ.sum()) == {(0, 0): 1, (1, 0): 27, (0, 1): 3, (1, 1): 81,
+                                (2, 1): 3 * 4 * 4 * 5, (1, 3): 5 * 27}[dilation]
+
+
+@pytest.mark.parametrize("bad", [[1], [1, -1], [1.5, 0], "11", [True, 0]])
+def test_a_bad_dilation_is_one_error_naming_the_key(bad):
+    with pytest.raises(InputError, match=r"render\.occupancy\.dilation.*two integers"):
+        OccupancyGrid([-1, -1, -1], [1, 1, 1], dilation=bad)

@@ -11,8 +11,9 @@ an exponential moving maximum of the field's own density at jittered points (ins
 rule, decay ``γ``), with ``σ = 0`` outside the cylinder. A cell starts *unasked*: it
 counts as occupied (nothing is skipped before the field has been asked about it) until
 its first update, which sets ``D`` to the sampled density. A cell is *occupied* when it
-or one of its neighbours (the 3×3×3 cells around it, in its own and the two adjacent
-time bins) has ``D > τ``, with the effective threshold
+or one of its neighbours has ``D > τ``: with ``dilation = (s, b)``, the
+``(2s + 1)³`` cells around it in space, in its own and the ``b`` bins on either side in
+time (default ``(1, 1)``: 3×3×3 cells in three bins). The effective threshold is
 
 .. math:: τ = \\min\\big(\\text{threshold},\\ \\overline{D}\\big),
 
@@ -20,7 +21,10 @@ time bins) has ``D > τ``, with the effective threshold
 field is still a thin fog everywhere, its denser half stays occupied instead of the whole
 grid going empty, which would lock the field out of space it has not learnt yet.
 The dilation is there because one jittered point per cell and update can miss the
-peak of a feature that spans a few cells, and the dilation keeps its surroundings. The
+peak of a feature that spans a few cells, and the dilation keeps its surroundings. In
+time it is costly for a moving subject: one bin on either side triples the time span over
+which the subject's path counts as occupied (``dilation = (1, 0)`` with more bins keeps
+less; ``docs/results/history.md``, "Session 49"). The
 renderer evaluates the field only at samples in occupied cells
 (:meth:`OccupancyGrid.occupied`); a sample whose density is below the threshold adds at
 most ``1 − exp(−threshold · δ)`` of opacity over a step ``δ``.
@@ -73,6 +77,8 @@ class OccupancyGrid(nn.Module):
         recheck: share of the cells above the threshold re-asked at each update.
         start_step: no sample is skipped before this step (the grid is updated).
         chunk: points per field call during an update.
+        dilation: ``(s, b)``: cells in space and bins in time by which occupancy is
+            widened on either side (``(0, 0)``: none).
 
     >>> g = OccupancyGrid([-1, -1, -1], [1, 1, 1], resolution=2, time_bins=1, threshold=0.5)
     >>> bool(g.occupied(torch.zeros(1, 3), torch.zeros(1, 1)).item())  # unasked: occupied
@@ -92,7 +98,8 @@ class OccupancyGrid(nn.Module):
     def __init__(self, lo: Sequence[float], hi: Sequence[float], resolution: int = 32,
                  time_bins: int = 8, threshold: float = 0.01, decay: float = 0.95,
                  every: int = 16, fraction: float = 0.25, start_step: int = 0,
-                 chunk: int = 65536, recheck: float = 1.0) -> None:
+                 chunk: int = 65536, recheck: float = 1.0,
+                 dilation: Sequence[int] = (1, 1)) -> None:
         super().__init__()
         if resolution < 1 or time_bins < 1 or threshold < 0 or not 0 < decay <= 1 \
                 or every < 1 or not 0 <= fraction <= 1 or not 0 < recheck <= 1:
@@ -101,6 +108,12 @@ class OccupancyGrid(nn.Module):
                              "every >= 1, fraction in [0, 1], recheck in (0, 1]",
                              (resolution, time_bins, threshold, decay, every, fraction,
                               recheck))
+        dil = list(dilation) if isinstance(dilation, Sequence) else []
+        if len(dil) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0
+                                    for v in dil):
+            raise InputError("config", "render.occupancy.dilation",
+                             "[cells in space, bins in time], two integers >= 0", dilation)
+        self.dilation = (int(dil[0]), int(dil[1]))
         self.resolution, self.time_bins = int(resolution), int(time_bins)
         self.threshold, self.decay = float(threshold), float(decay)
         self.every, self.fraction, self.recheck = int(every), float(fraction), float(recheck)
@@ -115,7 +128,8 @@ class OccupancyGrid(nn.Module):
 
     def extra_repr(self) -> str:
         return (f"resolution={self.resolution}, time_bins={self.time_bins}, "
-                f"threshold={self.threshold}, decay={self.decay}, every={self.every}")
+                f"threshold={self.threshold}, decay={self.decay}, every={self.every}, "
+                f"dilation={self.dilation}")
 
     @property
     def occupancy(self) -> Tensor:
@@ -136,10 +150,12 @@ class OccupancyGrid(nn.Module):
 
     def refresh(self) -> None:
         """Recompute :attr:`occupancy` from the densities: above the effective threshold or
-        unasked, dilated by one cell in space and one bin in time."""
+        unasked, dilated by :attr:`dilation` (cells in space, bins in time)."""
         core = self._dense().float()
-        core = F.max_pool3d(core[:, None], 3, stride=1, padding=1)[:, 0]
-        if self.time_bins > 1:
+        s, b = self.dilation
+        if s:
+            core = F.max_pool3d(core[:, None], 2 * s + 1, stride=1, padding=s)[:, 0]
+        for _ in range(min(b, self.time_bins - 1)):
             core = torch.maximum(core, torch.cat([core[1:], core[-1:]]))
             core = torch.maximum(core, torch.cat([core[:1], core[:-1]]))
         self.occ.copy_(core > 0)
