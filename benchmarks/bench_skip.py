@@ -1,0 +1,186 @@
+"""What the occupancy grid keeps on a trained run: samples per ray by level, and what
+other thresholds or grid shapes would keep, at what held-out PSNR.
+
+    python -m benchmarks skip RUN_DIR [--thresholds 0.1 1] [--grids 32x16:1,0 32x16:0,0]
+                                      [--batches 20] [--out FILE.md] [--threads 2]
+
+For the first segment of a finished run (its ``.hydra/config.yaml`` and
+``seg0/checkpoints/last.ckpt``), each row renders ``--batches`` training batches (the
+run's ``n_rays``, its own ray sampler, perturbed, under the run's image autocast, without
+gradients, so the coarse march stops group by group as in the logged
+``train/samples_per_ray``) and the held-out view at every frame time:
+
+- the grid as trained;
+- the same grid with each threshold of ``--thresholds`` (the trained moving maxima,
+  another cut);
+- each grid of ``--grids`` (``R x B : s, b``: ``R³`` cells, ``B`` time bins, dilation
+  ``s`` cells in space and ``b`` bins in time), rebuilt on the trained field by
+  ``--passes`` updates that ask every cell once each (one jittered point, the maximum
+  kept, no decay) at the run's threshold;
+- ``render.skip=none``.
+
+Samples per ray are the field's inputs per rendered ray (a ray's three renders count
+three), split into the coarse level (the same batches rendered with ``n_fine = 0``: the
+coarse draws come first, so they are the same) and the fine level. Session 49 used it to
+find that the grid's dilation in time, not fog above the threshold, keeps most samples
+of a trained `make train` run (``docs/results/history.md``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from eventrecon.build import load_dataset, load_segment, scene_properties
+from eventrecon.data.batcher import RayBatcher
+from eventrecon.data.selection import heldout_split, training_split
+from eventrecon.evaluate import render_heldout, score_images
+from eventrecon.fields.base import Field
+from eventrecon.render.occupancy import OccupancyGrid
+from eventrecon.render.volume import Renderer
+from eventrecon.segments import run_segments
+
+log = logging.getLogger("benchmarks.skip")
+
+
+def parse_grid(text: str) -> tuple[int, int, tuple[int, int]]:
+    """``"RxB:s,b"`` → ``(R, B, (s, b))``.
+
+    >>> parse_grid("32x16:1,0")
+    (32, 16, (1, 0))
+    """
+    try:
+        shape, dil = text.split(":")
+        res, bins = (int(v) for v in shape.split("x"))
+        s, b = (int(v) for v in dil.split(","))
+    except ValueError as exc:
+        raise SystemExit(f"--grids: {text!r} is not RxB:s,b (e.g. 32x16:1,0)") from exc
+    return res, bins, (s, b)
+
+
+def ray_samples(renderer: Renderer, field: Field, batches: Sequence[dict]) -> tuple[float, float]:
+    """``(coarse, fine)`` field inputs per rendered ray over ``batches`` (each rendered at
+    its ``t0, t1, t_ref``, sharing coarse samples, generator seeded by its index)."""
+    counts = []
+    n_fine = renderer.n_fine
+    for fine in (0, n_fine):
+        renderer.n_fine, renderer.field_inputs, rays = fine, 0, 0
+        for i, batch in enumerate(batches):
+            o, d = batch["rays_o"].repeat(3, 1), batch["rays_d"].repeat(3, 1)
+            t = torch.cat([batch["t0"], batch["t1"], batch["t_ref"]], 0)
+            with torch.no_grad(), renderer.image_autocast(o.device):
+                renderer(field, o, d, t, batch["bg"].repeat(3, 1), perturb=True,
+                         gen=torch.Generator().manual_seed(i), copies=3)
+            rays += o.shape[0]
+        counts.append(renderer.field_inputs / max(rays, 1))
+    renderer.n_fine = n_fine
+    return counts[0], counts[1] - counts[0]
+
+
+def rebuilt_grid(renderer: Renderer, field: Field, resolution: int, time_bins: int,
+                 dilation: tuple[int, int], threshold: float, passes: int) -> OccupancyGrid:
+    """A grid of another shape over the renderer's box, filled from ``field`` by
+    ``passes`` updates that ask every cell (the running maximum, no decay)."""
+    grid = OccupancyGrid(*renderer.cylinder.box(), resolution=resolution, time_bins=time_bins,
+                         threshold=threshold, decay=1.0, fraction=1.0, recheck=1.0,
+                         dilation=dilation)
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(passes):
+        grid.update(lambda x, t: renderer.masked_density(field, x, t), gen)
+    return grid
+
+
+def survey(run_dir: Path, thresholds: Sequence[float], grids: Sequence[str], n_batches: int,
+           passes: int) -> list[dict]:
+    """One row per grid setting (module docstring) for ``run_dir``'s first segment."""
+    cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
+    ds = load_dataset(cfg)
+    props = scene_properties(cfg, ds)
+    segments = run_segments(cfg, props.segments)
+    field, renderer = load_segment(cfg, props, run_dir / "seg0")
+    trained = renderer.occupancy
+    if trained is None:
+        raise SystemExit(f"{run_dir}: trained with render.skip=none (no grid to survey)")
+    train = training_split(ds, cfg.data.views, cfg.data.fps, props.duration_s, (0.0, 1000.0))
+    batcher = RayBatcher(train, segments[0], props.decay, props.bayer, cfg.data.neg_ratio)
+    batches = [batcher.sample(int(cfg.trainer.n_rays), torch.Generator().manual_seed(i))
+               for i in range(n_batches)]
+    held = heldout_split(ds)
+    frames = list(range(len(held.frame_times)))
+
+    def row(name: str, grid: OccupancyGrid | None) -> dict:
+        renderer.occupancy = grid
+        coarse, fine = ray_samples(renderer, field, batches)
+        t0 = time.perf_counter()
+        img = render_heldout([(field, renderer)], segments[:1], held, [0], frames)
+        sec = time.perf_counter() - t0
+        score = score_images([img[f, 0] for f in frames], [held.frames[f, 0] for f in frames],
+                             lpips=False)
+        out = {"grid": name, "coarse": coarse, "fine": fine, "psnr": score["psnr"],
+               "occupied": grid.occupied_fraction() if grid is not None else 1.0,
+               "render_s": sec}
+        log.info("%s %s: %.2f + %.2f samples per ray, occupied %.3f, PSNR %.3f (%.1f s)",
+                 run_dir.name, name, coarse, fine, out["occupied"], out["psnr"], sec)
+        return out
+
+    def shape(g: OccupancyGrid) -> str:
+        return (f"{g.resolution}³×{g.time_bins}, dilation {g.dilation[0]},{g.dilation[1]}, "
+                f"threshold {g.threshold:g}")
+
+    rows = [row(f"as trained: {shape(trained)}", trained)]
+    base = trained.threshold
+    for thr in thresholds:
+        trained.threshold = float(thr)
+        trained.refresh()
+        rows.append(row(f"as trained, threshold {thr:g}", trained))
+    trained.threshold = base
+    trained.refresh()
+    for text in grids:
+        res, bins, dil = parse_grid(text)
+        grid = rebuilt_grid(renderer, field, res, bins, dil, base, passes)
+        rows.append(row(f"rebuilt: {shape(grid)}", grid))
+    rows.append(row("render.skip=none", None))
+    return rows
+
+
+def markdown(rows: dict[str, list[dict]]) -> str:
+    """One line per run and grid setting."""
+    lines = ["| run | grid | samples per ray: coarse + fine = all | occupied | held-out PSNR "
+             "| held-out render (s) |", "|---|---|---|---|---|---|"]
+    for run, table in rows.items():
+        for r in table:
+            lines.append(f"| {run} | {r['grid']} | {r['coarse']:.2f} + {r['fine']:.2f} = "
+                         f"{r['coarse'] + r['fine']:.2f} | {r['occupied']:.3f} | "
+                         f"{r['psnr']:.3f} | {r['render_s']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks skip", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("runs", nargs="+", type=Path, help="finished run folders (render.skip=grid)")
+    ap.add_argument("--thresholds", nargs="*", type=float, default=[0.1, 1.0])
+    ap.add_argument("--grids", nargs="*", default=["32x8:1,1", "32x16:1,0", "32x16:0,0"],
+                    help="rebuilt grids, RxB:s,b")
+    ap.add_argument("--batches", type=int, default=20)
+    ap.add_argument("--passes", type=int, default=8, help="updates that fill a rebuilt grid")
+    ap.add_argument("--out", type=Path, help="write the Markdown table here")
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    rows = {str(run): survey(run, args.thresholds, args.grids, args.batches, args.passes)
+            for run in args.runs}
+    text = markdown(rows)
+    log.info("\n%s", text)
+    if args.out:
+        args.out.write_text(text)
+
+
+if __name__ == "__main__":
+    main()
