@@ -8,7 +8,8 @@
     python -m benchmarks compile              # torch.compile / bf16 vs eager (NeRF MLP)
 
 ``make bench ARGS="step --profile"`` passes ARGS here. NAME is the part after ``bench_``
-of a module in this folder.
+of a module in this folder. Benchmarks that read finished runs (``NEEDS_RUNS``: ``heldout``,
+``skip``) run only when named.
 """
 
 from __future__ import annotations
@@ -64,8 +65,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     todo = [(argv[0], argv[1:])] if argv else [(n, []) for n in names]
     for name, args in todo:
+        module = importlib.import_module(f"benchmarks.bench_{name}")
+        if not argv and getattr(module, "NEEDS_RUNS", False):
+            log.info("== %s == skipped: it reads finished runs (python -m benchmarks %s "
+                     "RUN_DIR ...)", name, name)
+            continue
         log.info("== %s ==", name)
-        importlib.import_module(f"benchmarks.bench_{name}").main(args)
+        module.main(args)
     return 0
 
 

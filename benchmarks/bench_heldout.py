@@ -46,6 +46,8 @@ from eventrecon.sim.raytrace import PixelRenderer
 from eventrecon.sim.spec import build_cameras, parse_spec
 
 log = logging.getLogger("benchmarks.heldout")
+#: Reads finished runs: ``python -m benchmarks`` alone does not run it.
+NEEDS_RUNS = True
 
 
 def mid_times(times: np.ndarray) -> np.ndarray:

@@ -47,6 +47,8 @@ from eventrecon.render.volume import Renderer
 from eventrecon.segments import run_segments
 
 log = logging.getLogger("benchmarks.skip")
+#: Reads finished runs: ``python -m benchmarks`` alone does not run it.
+NEEDS_RUNS = True
 
 
 def parse_grid(text: str) -> tuple[int, int, tuple[int, int]]:
