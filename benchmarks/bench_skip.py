@@ -6,8 +6,8 @@ other thresholds or grid shapes would keep, at what held-out PSNR.
 
 For the first segment of a finished run (its ``.hydra/config.yaml`` and
 ``seg0/checkpoints/last.ckpt``), each row renders ``--batches`` training batches (the
-run's ``n_rays``, its own ray sampler, perturbed, under the run's image autocast, without
-gradients, so the coarse march stops group by group as in the logged
+run's ``n_rays``, its own ray sampler, perturbed, under the run's image autocast, with
+gradients on, so the field sees what it sees in training and the count is the logged
 ``train/samples_per_ray``) and the held-out view at every frame time:
 
 - the grid as trained;
@@ -21,9 +21,11 @@ gradients, so the coarse march stops group by group as in the logged
 
 Samples per ray are the field's inputs per rendered ray (a ray's three renders count
 three), split into the coarse level (the same batches rendered with ``n_fine = 0``: the
-coarse draws come first, so they are the same) and the fine level. Session 49 used it to
-find that the grid's dilation in time, not fog above the threshold, keeps most samples
-of a trained `make train` run (``docs/results/history.md``).
+coarse draws come first, so they are the same) and the fine level. "Opaque" is the share
+of rendered rays whose opacity exceeds 0.5: their fine samples sit on the subject, in
+occupied cells, so they reach the field. Session 49 used it to find that the grid's
+dilation in time, not fog above the threshold, keeps most samples of a trained
+`make train` run (``docs/results/history.md``).
 """
 
 from __future__ import annotations
@@ -66,23 +68,31 @@ def parse_grid(text: str) -> tuple[int, int, tuple[int, int]]:
     return res, bins, (s, b)
 
 
-def ray_samples(renderer: Renderer, field: Field, batches: Sequence[dict]) -> tuple[float, float]:
-    """``(coarse, fine)`` field inputs per rendered ray over ``batches`` (each rendered at
-    its ``t0, t1, t_ref``, sharing coarse samples, generator seeded by its index)."""
-    counts = []
+def ray_samples(renderer: Renderer, field: Field, batches: Sequence[dict]
+                ) -> tuple[float, float, float]:
+    """``(coarse, fine, opaque)``: field inputs per rendered ray over ``batches`` by level,
+    and the share of rendered rays whose final opacity exceeds 0.5. Each batch renders at
+    its ``t0, t1, t_ref`` (shared coarse samples, generator seeded by its index) with
+    gradients on, as in training: the coarse march then calls the field on every occupied
+    sample and applies its stops as masks, so the sum is the logged
+    ``train/samples_per_ray``."""
+    counts, opaque, rays = [], 0, 0
     n_fine = renderer.n_fine
-    for fine in (0, n_fine):
-        renderer.n_fine, renderer.field_inputs, rays = fine, 0, 0
-        for i, batch in enumerate(batches):
-            o, d = batch["rays_o"].repeat(3, 1), batch["rays_d"].repeat(3, 1)
-            t = torch.cat([batch["t0"], batch["t1"], batch["t_ref"]], 0)
-            with torch.no_grad(), renderer.image_autocast(o.device):
-                renderer(field, o, d, t, batch["bg"].repeat(3, 1), perturb=True,
-                         gen=torch.Generator().manual_seed(i), copies=3)
-            rays += o.shape[0]
-        counts.append(renderer.field_inputs / max(rays, 1))
-    renderer.n_fine = n_fine
-    return counts[0], counts[1] - counts[0]
+    try:
+        for fine in (0, n_fine):
+            renderer.n_fine, renderer.field_inputs, rays, opaque = fine, 0, 0, 0
+            for i, batch in enumerate(batches):
+                o, d = batch["rays_o"].repeat(3, 1), batch["rays_d"].repeat(3, 1)
+                t = torch.cat([batch["t0"], batch["t1"], batch["t_ref"]], 0)
+                with torch.enable_grad(), renderer.image_autocast(o.device):
+                    out = renderer(field, o, d, t, batch["bg"].repeat(3, 1), perturb=True,
+                                   gen=torch.Generator().manual_seed(i), copies=3)
+                opaque += int((out[-1]["opacity"].detach() > 0.5).sum())
+                rays += o.shape[0]
+            counts.append(renderer.field_inputs / max(rays, 1))
+    finally:
+        renderer.n_fine = n_fine
+    return counts[0], counts[1] - counts[0], opaque / max(rays, 1)
 
 
 def rebuilt_grid(renderer: Renderer, field: Field, resolution: int, time_bins: int,
@@ -118,29 +128,33 @@ def survey(run_dir: Path, thresholds: Sequence[float], grids: Sequence[str], n_b
 
     def row(name: str, grid: OccupancyGrid | None) -> dict:
         renderer.occupancy = grid
-        coarse, fine = ray_samples(renderer, field, batches)
+        coarse, fine, opaque = ray_samples(renderer, field, batches)
         t0 = time.perf_counter()
         img = render_heldout([(field, renderer)], segments[:1], held, [0], frames)
         sec = time.perf_counter() - t0
         score = score_images([img[f, 0] for f in frames], [held.frames[f, 0] for f in frames],
                              lpips=False)
-        out = {"grid": name, "coarse": coarse, "fine": fine, "psnr": score["psnr"],
+        out = {"grid": name, "coarse": coarse, "fine": fine, "opaque": opaque,
+               "psnr": score["psnr"],
                "occupied": grid.occupied_fraction() if grid is not None else 1.0,
                "render_s": sec}
-        log.info("%s %s: %.2f + %.2f samples per ray, occupied %.3f, PSNR %.3f (%.1f s)",
-                 run_dir.name, name, coarse, fine, out["occupied"], out["psnr"], sec)
+        log.info("%s %s: %.2f + %.2f samples per ray (%.3f of the rays opaque), occupied "
+                 "%.3f, PSNR %.3f (%.1f s)", run_dir.name, name, coarse, fine, opaque,
+                 out["occupied"], out["psnr"], sec)
         return out
 
     def shape(g: OccupancyGrid) -> str:
-        return (f"{g.resolution}³×{g.time_bins}, dilation {g.dilation[0]},{g.dilation[1]}, "
-                f"threshold {g.threshold:g}")
+        tau = float(g.effective_threshold())       # min(threshold, mean asked density)
+        cut = f"threshold {g.threshold:g}" + (f" (effective {tau:.3g})"
+                                              if tau < g.threshold * (1 - 1e-6) else "")
+        return f"{g.resolution}³×{g.time_bins}, dilation {g.dilation[0]},{g.dilation[1]}, {cut}"
 
     rows = [row(f"as trained: {shape(trained)}", trained)]
     base = trained.threshold
     for thr in thresholds:
         trained.threshold = float(thr)
         trained.refresh()
-        rows.append(row(f"as trained, threshold {thr:g}", trained))
+        rows.append(row(f"as trained: {shape(trained)}", trained))
     trained.threshold = base
     trained.refresh()
     for text in grids:
@@ -153,12 +167,13 @@ def survey(run_dir: Path, thresholds: Sequence[float], grids: Sequence[str], n_b
 
 def markdown(rows: dict[str, list[dict]]) -> str:
     """One line per run and grid setting."""
-    lines = ["| run | grid | samples per ray: coarse + fine = all | occupied | held-out PSNR "
-             "| held-out render (s) |", "|---|---|---|---|---|---|"]
+    lines = ["| run | grid | samples per ray: coarse + fine = all | opaque rays | occupied "
+             "| held-out PSNR | held-out render (s) |", "|---|---|---|---|---|---|---|"]
     for run, table in rows.items():
         for r in table:
             lines.append(f"| {run} | {r['grid']} | {r['coarse']:.2f} + {r['fine']:.2f} = "
-                         f"{r['coarse'] + r['fine']:.2f} | {r['occupied']:.3f} | "
+                         f"{r['coarse'] + r['fine']:.2f} | {r['opaque']:.3f} | "
+                         f"{r['occupied']:.3f} | "
                          f"{r['psnr']:.3f} | {r['render_s']:.1f} |")
     return "\n".join(lines) + "\n"
 

@@ -32,7 +32,7 @@ def test_an_installed_package_without_a_source_checkout_is_not_flagged(tmp_path)
     assert foreign_package(tmp_path / "benchmarks", site / "__init__.py") is None
 
 
-def test_running_every_benchmark_skips_those_that_read_finished_runs(caplog) -> None:
+def test_running_every_benchmark_skips_those_that_read_finished_runs(caplog, monkeypatch) -> None:
     """``python -m benchmarks`` alone runs each benchmark with its defaults; the two that
     need run folders are skipped with a line naming how to run them (argparse would
     otherwise stop the whole sequence at the first)."""
@@ -42,17 +42,16 @@ def test_running_every_benchmark_skips_those_that_read_finished_runs(caplog) -> 
     import benchmarks.__main__ as bm
 
     ran: list[str] = []
-    originals = {}
     for name in bm.available():
         module = importlib.import_module(f"benchmarks.bench_{name}")
-        originals[name] = module.main
-        module.main = lambda args, name=name: ran.append(name)
+        monkeypatch.setattr(module, "main", lambda args, name=name: ran.append(name))
+    monkeypatch.setattr(bm, "retain_freed_memory", lambda: None)
+    level = logging.getLogger("eventrecon").level
     try:
         with caplog.at_level(logging.INFO, logger="benchmarks"):
             assert bm.main([]) == 0
     finally:
-        for name, fn in originals.items():
-            importlib.import_module(f"benchmarks.bench_{name}").main = fn
+        logging.getLogger("eventrecon").setLevel(level)
     assert {"heldout", "skip"} <= set(bm.available())
     assert sorted(ran) == sorted(set(bm.available()) - {"heldout", "skip"})
     assert "python -m benchmarks skip RUN_DIR" in caplog.text

@@ -7,6 +7,7 @@ import torch
 from test_occupancy import CYL, Blob, _rays
 
 from benchmarks.bench_skip import parse_grid, ray_samples, rebuilt_grid
+from eventrecon.render import volume
 from eventrecon.render.volume import Renderer
 
 
@@ -24,27 +25,43 @@ def test_without_a_grid_every_sample_of_both_levels_counts():
     hit = torch.cat([r.cylinder.ray_interval(b["rays_o"], b["rays_d"])[2] for b in batches])
     share = float(hit.float().mean())                  # a ray that misses costs nothing
     assert 0.9 < share < 1.0
-    coarse, fine = ray_samples(r, Blob(), batches)
+    coarse, fine, _ = ray_samples(r, Blob(), batches)
     assert coarse == pytest.approx(32 * share) and fine == pytest.approx(24 * share)
     assert r.n_fine == 24                              # restored
 
 
-def test_the_split_adds_up_to_the_renderers_own_count_and_the_grid_cuts_both_levels():
+def test_the_coarse_count_is_the_renderers_own_at_the_fine_draws(monkeypatch):
+    """The split against the renderer's counter read inside one full render, at the moment
+    the fine samples are drawn (after the coarse level, before the fine one), with a grid
+    that skips most of the box."""
     field, batches = Blob(), _batches(3, 60)
     r = Renderer(n_coarse=32, n_fine=32, skip="grid", **CYL)
     r.occupancy = rebuilt_grid(r, field, 24, 16, (1, 0), 0.01, passes=3)
-    coarse, fine = ray_samples(r, field, batches)
-    r.field_inputs, rays = 0, 0                        # the same renders, counted at once
+    coarse, fine, opaque = ray_samples(r, field, batches)
+    seen: list[int] = []                               # coarse inputs of each render
+    start = [0]
+    draw = volume.sample_pdf
+
+    def counting(*args, **kwargs):
+        seen.append(r.field_inputs - start[0])
+        return draw(*args, **kwargs)
+
+    monkeypatch.setattr(volume, "sample_pdf", counting)
+    r.field_inputs, rays, hits = 0, 0, 0
     for i, b in enumerate(batches):
         o, d = b["rays_o"].repeat(3, 1), b["rays_d"].repeat(3, 1)
         t = torch.cat([b["t0"], b["t1"], b["t_ref"]], 0)
-        with torch.no_grad():
-            r(field, o, d, t, b["bg"].repeat(3, 1), perturb=True,
-              gen=torch.Generator().manual_seed(i), copies=3)
+        start[0] = r.field_inputs
+        out = r(field, o, d, t, b["bg"].repeat(3, 1), perturb=True,
+                gen=torch.Generator().manual_seed(i), copies=3)
+        hits += int((out[-1]["opacity"].detach() > 0.5).sum())
         rays += o.shape[0]
+    assert len(seen) == len(batches)
+    assert coarse == pytest.approx(sum(seen) / rays, abs=1e-9)
     assert coarse + fine == pytest.approx(r.field_inputs / rays, abs=1e-9)
+    assert opaque == pytest.approx(hits / rays, abs=1e-9)
     assert 0 < coarse < 16 and 0 < fine < 32           # the blob fills little of the box
-    assert r.occupancy.dilation == (1, 0) and r.occupancy.time_bins == 16
+    assert 0 < opaque < 0.5
 
 
 def test_a_grid_is_named_as_cells_bins_and_dilation():

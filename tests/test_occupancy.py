@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 from torch import Tensor, nn
 
 from baselines import HexPlaneField
@@ -284,7 +285,7 @@ def test_rechecking_a_share_of_the_occupied_cells_costs_that_share_and_forgets_a
     assert 60 <= emptied[0.25] <= 180
 
 
-@pytest.mark.parametrize("dilation", [(0, 0), (1, 0), (0, 1), (1, 1), (2, 1), (1, 3)])
+@pytest.mark.parametrize("dilation", [(0, 0), (1, 0), (0, 1), (1, 1), (2, 1), (1, 3), (1, 9)])
 def test_dilation_widens_occupancy_by_its_cells_in_space_and_bins_in_time(dilation):
     """One dense cell: the occupied cells are exactly those within ``s`` cells of it in
     every axis and ``b`` bins in time (an independent reference from the indices)."""
@@ -298,9 +299,20 @@ def test_dilation_widens_occupancy_by_its_cells_in_space_and_bins_in_time(dilati
     far = (idx - torch.tensor([3, 1, 6, 4])[:, None, None, None, None]).abs()
     expected = (far[0] <= b) & (far[1:] <= s).all(0)
     assert torch.equal(g.occ, expected)
-    # counted by hand: cells clipped at the box's faces, bins at the clip's ends
+    # counted by hand: (2, 1) is cut by the box's faces, (1, 3) and (1, 9) by the first
+    # and the last of the 5 bins (9 bins saturate at all 5)
     assert int(g.occ.sum()) == {(0, 0): 1, (1, 0): 27, (0, 1): 3, (1, 1): 81,
-                                (2, 1): 3 * 4 * 4 * 5, (1, 3): 5 * 27}[dilation]
+                                (2, 1): 3 * 4 * 4 * 5, (1, 3): 5 * 27, (1, 9): 5 * 27}[dilation]
+
+
+def test_one_time_bin_is_widened_in_space_only():
+    g = OccupancyGrid([-1, -1, -1], [1, 1, 1], resolution=8, time_bins=1, threshold=0.5,
+                      dilation=OmegaConf.create([1, 2]))       # a list as Hydra passes it
+    assert g.dilation == (1, 2)
+    g.asked.fill_(True)
+    g.density[0, 1, 6, 4] = 1.0
+    g.refresh()
+    assert int(g.occ.sum()) == 27
 
 
 @pytest.mark.parametrize("bad", [[1], [1, -1], [1.5, 0], "11", [True, 0]])
