@@ -315,7 +315,7 @@ def test_one_time_bin_is_widened_in_space_only():
     assert int(g.occ.sum()) == 27
 
 
-@pytest.mark.parametrize("bad", [[1], [1, -1], [1.5, 0], "11", [True, 0]])
+@pytest.mark.parametrize("bad", [[1], [1, -1], [1.5, 0], "11", b"\x01\x00", [True, 0]])
 def test_a_bad_dilation_is_one_error_naming_the_key(bad):
     with pytest.raises(InputError, match=r"render\.occupancy\.dilation.*two integers"):
         OccupancyGrid([-1, -1, -1], [1, 1, 1], dilation=bad)

@@ -108,7 +108,8 @@ class OccupancyGrid(nn.Module):
                              "every >= 1, fraction in [0, 1], recheck in (0, 1]",
                              (resolution, time_bins, threshold, decay, every, fraction,
                               recheck))
-        dil = list(dilation) if isinstance(dilation, Sequence) else []
+        dil = (list(dilation) if isinstance(dilation, Sequence)
+               and not isinstance(dilation, (str, bytes)) else [])
         if len(dil) != 2 or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0
                                     for v in dil):
             raise InputError("config", "render.occupancy.dilation",
