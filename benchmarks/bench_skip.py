@@ -111,6 +111,7 @@ def rebuilt_grid(renderer: Renderer, field: Field, resolution: int, time_bins: i
 def survey(run_dir: Path, thresholds: Sequence[float], grids: Sequence[str], n_batches: int,
            passes: int) -> list[dict]:
     """One row per grid setting (module docstring) for ``run_dir``'s first segment."""
+    shapes = [parse_grid(text) for text in grids]      # a typo fails before any work
     cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
     ds = load_dataset(cfg)
     props = scene_properties(cfg, ds)
@@ -157,8 +158,7 @@ def survey(run_dir: Path, thresholds: Sequence[float], grids: Sequence[str], n_b
         rows.append(row(f"as trained: {shape(trained)}", trained))
     trained.threshold = base
     trained.refresh()
-    for text in grids:
-        res, bins, dil = parse_grid(text)
+    for res, bins, dil in shapes:
         grid = rebuilt_grid(renderer, field, res, bins, dil, base, passes)
         rows.append(row(f"rebuilt: {shape(grid)}", grid))
     rows.append(row("render.skip=none", None))
