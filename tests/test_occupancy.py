@@ -299,8 +299,8 @@ def test_dilation_widens_occupancy_by_its_cells_in_space_and_bins_in_time(dilati
     far = (idx - torch.tensor([3, 1, 6, 4])[:, None, None, None, None]).abs()
     expected = (far[0] <= b) & (far[1:] <= s).all(0)
     assert torch.equal(g.occ, expected)
-    # counted by hand: (2, 1) is cut by the box's faces, (1, 3) and (1, 9) by the first
-    # and the last of the 5 bins (9 bins saturate at all 5)
+    # counted by hand: (2, 1) is cut by the box's faces, (1, 3) by the last of the 5 bins,
+    # (1, 9) by both ends (both reach all 5)
     assert int(g.occ.sum()) == {(0, 0): 1, (1, 0): 27, (0, 1): 3, (1, 1): 81,
                                 (2, 1): 3 * 4 * 4 * 5, (1, 3): 5 * 27, (1, 9): 5 * 27}[dilation]
 
