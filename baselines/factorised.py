@@ -24,7 +24,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from baselines.grids import FactorGrids, box_normalize, unsplit
+from baselines.grids import FactorGrids, box_normalize
 from baselines.heads import activate
 from baselines.schedules import GridGrowth, GrowthPlan
 from eventrecon.errors import InputError
@@ -74,9 +74,8 @@ class FactorisedField(Field):
         raise NotImplementedError
 
     def combine(self, samples: list[Tensor]) -> Tensor:
-        """Factor samples → rank components, channel by channel: ``[k, F·R, m]`` each, the
-        points split as :func:`~baselines.grids.sample_grid_split` splits them (the
-        products run on the entries as they come out of ``grid_sample``)."""
+        """Factor samples → rank components, channel by channel: ``[N, F·R]`` each
+        (:func:`~baselines.grids.sample_points`)."""
         raise NotImplementedError
 
     def set_scene_box(self, lo: Sequence[float], hi: Sequence[float]) -> None:
@@ -91,10 +90,9 @@ class FactorisedField(Field):
     def forward(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
         """``xyz [N, 3], t [N, 1] -> (sigma [N], rgb [N, 3])``."""
         coords = box_normalize(xyz, t, self.box_lo, self.box_hi)
-        out = self.combine(self.grids(coords))                     # [k, F·R, m]
-        k, _, m = out.shape
-        out = unsplit(out.reshape(k, FEATURES, self.rank, m).sum(2), xyz.shape[0])   # [F, N]
-        return activate(out[0], out[1:].t())
+        out = self.combine(self.grids(coords))                          # [N, F·R]
+        out = out.reshape(-1, FEATURES, self.rank).sum(-1)              # [N, F]
+        return activate(out[:, 0], out[:, 1:])
 
     def callbacks(self) -> list[Any]:
         """Grid growth (upsampling + optimiser rebuild) when the plan has stages."""

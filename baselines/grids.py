@@ -8,6 +8,9 @@ on vertex ``R − 1``; ``align_corners=False`` puts them on the outer edges of t
 and last cells (vertex ``i`` sits at ``(2i + 1)/R − 1``). Outside the sampled range the
 grid is extended by its border values (``padding="border"``) or by zeros
 (``padding="zeros"``, ``grid_sample``'s default, which the authors' code uses).
+A :class:`FactorGrids` factor keeps that shape but stores its channels innermost
+(:func:`channels_last`), the layout the CPU's compiled interpolation reads
+(:mod:`baselines.interp`).
 
 Scene normalisation (:func:`box_normalize`): world ``xyz`` is mapped from a box (the
 clipping cylinder's bounding box, set by the run) to ``[-1, 1]^3`` and the segment time
@@ -24,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from baselines.interp import interpolate
 from eventrecon.errors import InputError
 
 _MODES = {1: "linear", 2: "bilinear", 3: "trilinear"}
@@ -72,6 +76,23 @@ def box_normalize(xyz: Tensor, t: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     return torch.cat([c, 2.0 * t.reshape(-1, 1).to(xyz.dtype) - 1.0], dim=-1)
 
 
+def sample_points(grid: Tensor, coords: Tensor, align_corners: bool = True,
+                  padding: str = "border") -> Tensor:
+    """:func:`sample_grid`, channel-last: ``[N, C]``.
+
+    A line or plane on the CPU goes to the compiled loops of :mod:`baselines.interp`
+    (channel-last reads; the grid's gradient only). Anything else (a GPU, a 3-D grid,
+    coordinates that need a gradient) goes to ``grid_sample``, on a CPU with its points
+    split into :func:`cpu_batches` batch entries (:func:`sample_grid_split`); the result
+    is then a transposed view."""
+    out = interpolate(grid, coords, align_corners, padding)
+    if out is None:
+        k = cpu_batches(coords.shape[0], grid)
+        out = unsplit(sample_grid_split(grid, coords, k, align_corners, padding),
+                      coords.shape[0]).t()
+    return out
+
+
 def sample_grid(grid: Tensor, coords: Tensor, align_corners: bool = True,
                 padding: str = "border") -> Tensor:
     """Multilinear interpolation of a dense ``d``-dimensional grid (``d`` = 1, 2 or 3).
@@ -80,8 +101,7 @@ def sample_grid(grid: Tensor, coords: Tensor, align_corners: bool = True,
     ``p_k = (c_k + 1) / 2 * (R_k - 1)`` (``align_corners=True``) or
     ``p_k = ((c_k + 1) R_k - 1) / 2`` (``False``), ``i_k = floor(p_k)``, ``w_k = p_k - i_k``
     for ``b_k = 1`` and ``1 - (p_k - i_k)`` for ``b_k = 0``; vertices outside the grid take
-    the border value or zero (``padding``). Computed by ``grid_sample`` (a line is
-    sampled as an ``[R, 1]`` image).
+    the border value or zero (``padding``).
 
     Args:
         grid: ``[C, R_0, ..., R_{d-1}]`` features.
@@ -89,14 +109,8 @@ def sample_grid(grid: Tensor, coords: Tensor, align_corners: bool = True,
         align_corners, padding: the convention (module docstring).
 
     Returns:
-        ``[C, N]`` interpolated features, channel-first.
-
-    On a CPU with several threads the points are split into :func:`cpu_batches` batch
-    entries of one expanded image (:func:`sample_grid_split`; the last padded with points
-    whose outputs are dropped): the same values, about 2× faster forward and backward on
-    2 threads; the image's gradient is then the sum of the entries' gradients, equal up
-    to rounding. The result's rows are then strided views (``[C, N]`` of a ``[C, k·m]``
-    array).
+        ``[C, N]`` interpolated features, channel-first (a transposed view of
+        :func:`sample_points`).
 
     >>> line = torch.tensor([[0.0, 1.0, 4.0]])      # C = 1, R = 3
     >>> sample_grid(line, torch.tensor([[-1.0], [0.5], [2.0]])).flatten().tolist()
@@ -104,9 +118,7 @@ def sample_grid(grid: Tensor, coords: Tensor, align_corners: bool = True,
     >>> sample_grid(line, torch.tensor([[0.0], [1.0]]), False, "zeros").flatten().tolist()
     [1.0, 2.0]
     """
-    k = cpu_batches(coords.shape[0], grid)
-    out = sample_grid_split(grid, coords, k, align_corners, padding)      # [k, C, m]
-    return unsplit(out, coords.shape[0])
+    return sample_points(grid, coords, align_corners, padding).t()
 
 
 def sample_grid_split(grid: Tensor, coords: Tensor, k: int, align_corners: bool = True,
@@ -229,6 +241,17 @@ def geometric_resolutions(start: Sequence[int], end: Sequence[int], n_stages: in
     return out
 
 
+def channels_last(grid: Tensor) -> Tensor:
+    """``grid [C, R_0, …]`` with the same shape and values, its channels innermost in
+    memory (strides ``(1, …, C)``): the layout :mod:`baselines.interp` reads without a
+    copy, and its gradient's layout, so that autograd keeps the gradient as it comes.
+
+    >>> channels_last(torch.zeros(4, 5, 6)).stride()
+    (1, 24, 4)
+    """
+    return grid.movedim(0, -1).contiguous().movedim(-1, 0)
+
+
 class FactorGrids(nn.Module):
     """Dense factor grids over subsets of the 4 input axes ``(x, y, z, t)``.
 
@@ -256,7 +279,7 @@ class FactorGrids(nn.Module):
         self.factors = nn.ParameterList()
         for shape in shapes:
             val = std * torch.randn((channels, *shape), generator=generator)
-            self.factors.append(nn.Parameter(val))
+            self.factors.append(nn.Parameter(channels_last(val)))
 
     @property
     def shapes(self) -> list[tuple[int, ...]]:
@@ -264,11 +287,9 @@ class FactorGrids(nn.Module):
         return [tuple(f.shape[1:]) for f in self.factors]
 
     def forward(self, coords: Tensor) -> list[Tensor]:
-        """Sample every factor: ``coords [N, 4]`` -> list of ``[k, C, m]``
-        (:func:`sample_grid_split`'s layout, :func:`unsplit` gives ``[C, N]``), one ``k``
-        for all factors: the fewest entries :func:`cpu_batches` gives any of them."""
-        k = min(cpu_batches(coords.shape[0], f) for f in self.factors)
-        return [sample_grid_split(f, coords[:, list(ax)], k, ac, self.padding)
+        """Sample every factor: ``coords [N, 4]`` -> list of ``[N, C]``
+        (:func:`sample_points`)."""
+        return [sample_points(f, coords[:, list(ax)], ac, self.padding)
                 for f, ax, ac in zip(self.factors, self.axes, self.align_corners)]
 
     def upsample(self, shapes: Sequence[Sequence[int]]) -> None:
@@ -277,7 +298,7 @@ class FactorGrids(nn.Module):
             for j, shape in enumerate(shapes):
                 if tuple(shape) != self.shapes[j]:
                     new = upsample_grid(self.factors[j].detach(), shape, self.align_corners[j])
-                    self.factors[j] = nn.Parameter(new.contiguous())
+                    self.factors[j] = nn.Parameter(channels_last(new))
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
         # A checkpoint written after growth holds larger factors: resize before loading.
@@ -285,5 +306,6 @@ class FactorGrids(nn.Module):
             saved = state_dict.get(f"{prefix}factors.{j}")
             if saved is not None and tuple(saved.shape) != tuple(self.factors[j].shape):
                 device = self.factors[j].device
-                self.factors[j] = nn.Parameter(torch.empty_like(saved, device=device))
+                self.factors[j] = nn.Parameter(channels_last(torch.empty(saved.shape,
+                                                                         device=device)))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

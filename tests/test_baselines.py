@@ -69,10 +69,16 @@ def test_sample_grid_matches_explicit_gather(shape, align, padding):
 
 @pytest.mark.parametrize("shape", [(3, 40), (3, 17, 19), (2, 6, 5, 7)])
 def test_sample_grid_split_over_threads_gives_the_same_values_and_summed_gradients(shape):
-    """On 2 threads the points go to ``grid_sample`` as 2 batch entries (the last padded):
-    values bit for bit those of one entry, the grid's gradient the same up to the rounding
-    of its two partial sums; both match the explicit gather."""
+    """Where ``grid_sample`` serves (a GPU, a 3-D grid, coordinates with a gradient), on
+    2 threads the points go to it as 2 batch entries (the last padded): values bit for bit
+    those of one entry, the grid's gradient the same up to the rounding of its two partial
+    sums; both match the explicit gather."""
     import baselines.grids as grids
+
+    def sample_grid(grid, coords, align, padding):          # the grid_sample path itself
+        k = grids.cpu_batches(coords.shape[0], grid)
+        return grids.unsplit(grids.sample_grid_split(grid, coords, k, align, padding),
+                             coords.shape[0])
 
     g = torch.Generator().manual_seed(1)
     n = 3 * grids.MIN_SPLIT_POINTS + 5                   # odd: the second entry is padded
@@ -100,12 +106,14 @@ def test_sample_grid_split_over_threads_gives_the_same_values_and_summed_gradien
 
 
 @pytest.mark.parametrize("kind", ["tensorf_cp", "hexplane"])
-def test_factorised_field_combines_the_split_samples_into_the_one_thread_field(kind):
-    """On 2 threads the factors are sampled and multiplied in the split ``[k, C, m]``
-    layout (``k`` = 2, the second entry padded): the field equals the one-thread field,
-    value for value, and its gradients agree up to the rounding of the summed entries."""
+def test_factorised_field_on_split_grid_sample_equals_the_one_thread_field(kind, monkeypatch):
+    """With ``grid_sample`` serving the factors (the compiled interpolation switched off,
+    as on a machine without numba), on 2 threads their points are split into ``k`` = 2
+    entries (the second padded): the field equals the one-thread field, value for value,
+    and its gradients agree up to the rounding of the summed entries."""
     import baselines.grids as grids
 
+    monkeypatch.setattr(grids, "interpolate", lambda *a, **k: None)
     field = _small(kind)
     n = 2 * grids.MIN_SPLIT_POINTS + 3
     xyz, t = _points(n, 4)

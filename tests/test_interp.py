@@ -1,0 +1,130 @@
+"""The CPU's compiled interpolation of lines and planes (baselines.interp): values and
+gradients against the explicit corner gather, the cases it hands to ``grid_sample``, and
+the channel-last layout of the factor grids that read it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import baselines.grids as grids
+from baselines import HexPlaneField, TensoRFCPField
+from baselines.interp import corners, interpolate, supported
+from eventrecon.sim.pipeline import torch_threads
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    with torch_threads(1):
+        yield
+
+
+def _case(shape: tuple[int, ...], n: int, seed: int, dtype=torch.float32):
+    g = torch.Generator().manual_seed(seed)
+    grid = torch.randn(shape, generator=g, dtype=dtype)
+    coords = (torch.rand(n, len(shape) - 1, generator=g, dtype=dtype) * 2.4 - 1.2)
+    coords[:4] = torch.tensor([-1.0, 1.0, 1.0, -1.0], dtype=dtype)[:, None]   # the edges
+    return grid, coords
+
+
+@pytest.mark.parametrize("shape", [(3, 7), (5, 2), (3, 5, 9), (4, 2, 6)])
+@pytest.mark.parametrize("align,padding", [(True, "zeros"), (False, "zeros"),
+                                           (True, "border"), (False, "border")])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_values_and_grid_gradient_match_the_explicit_gather(shape, align, padding, dtype):
+    """Forward: the corner gather of ``sample_grid_reference`` (a Python loop over the
+    corners, independent of the compiled loops). Backward: autograd through that gather,
+    for a random weighting of the outputs."""
+    grid, coords = _case(shape, 600, 0, dtype)
+    grid.requires_grad_(True)
+    out = interpolate(grid, coords, align, padding)
+    assert out is not None and out.shape == (600, shape[0]) and out.dtype == dtype
+    ref = grids.sample_grid_reference(grid, coords, align, padding).t()
+    tol = 1e-6 if dtype == torch.float32 else 1e-13
+    assert (out - ref).abs().max().item() <= tol
+    w = torch.randn(out.shape, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    (g_new,) = torch.autograd.grad((out * w).sum(), grid)
+    (g_ref,) = torch.autograd.grad((ref * w).sum(), grid)
+    assert (g_new - g_ref).abs().max().item() <= 20 * tol
+
+
+def test_known_values_and_points_that_read_nothing():
+    """A line ``[0, 1, 4]``: halfway between vertices 1 and 2 is 2.5; with zero padding
+    and ``align_corners=False`` a point half a cell beyond the last vertex reads half of
+    it; NaN and huge coordinates read nothing (zero), and their gradient is zero."""
+    line = torch.tensor([[0.0, 1.0, 4.0]], requires_grad=True)
+    c = torch.tensor([[0.5], [1.0], [float("nan")], [1e30], [-1e30], [float("inf")]])
+    out = interpolate(line, c, True, "zeros")
+    assert out.flatten().tolist() == [2.5, 4.0, 0.0, 0.0, 0.0, 0.0]
+    beyond = interpolate(line.detach(), torch.tensor([[1.0]]), False, "zeros")     # p = 2.5
+    assert beyond.item() == pytest.approx(2.0)
+    (g,) = torch.autograd.grad(out.sum(), line)
+    assert g.flatten().tolist() == [0.0, 0.5, 1.5]
+    i, w = corners(torch.tensor([[float("nan"), 2.75]]))
+    assert i[0, 0].item() < -1 and i[0, 1].item() == 2 and w[0, 1].tolist() == [0.25, 0.75]
+
+
+def test_cases_left_to_grid_sample():
+    """A 3-D grid, coordinates that need a gradient, a GPU-less meta tensor and mixed
+    dtypes are not served (``None``); ``sample_points`` then gives ``grid_sample``'s
+    values, with the coordinates' gradient."""
+    grid, coords = _case((2, 5, 6), 50, 3)
+    assert supported(grid, coords)
+    assert not supported(torch.zeros(2, 3, 4, 5), torch.zeros(7, 3))
+    assert not supported(grid.to("meta"), coords.to("meta"))
+    assert not supported(grid, coords.double())
+    c = coords.clone().requires_grad_(True)
+    assert interpolate(grid, c) is None
+    out = grids.sample_points(grid, c, True, "zeros")
+    ref = grids.sample_grid_reference(grid, coords, True, "zeros").t()
+    assert (out - ref).abs().max().item() <= 1e-5
+    (gc,) = torch.autograd.grad(out.sum(), c)
+    assert gc.abs().sum().item() > 0
+    with torch.no_grad():                     # no gradient wanted: served after all
+        assert interpolate(grid, c) is not None
+
+
+@pytest.mark.parametrize("kind", ["tensorf_cp", "hexplane"])
+def test_factor_grids_are_channel_last_and_their_gradients_stay_so(kind, monkeypatch):
+    """The factors keep their ``[C, *R]`` shape and values but store channels innermost,
+    at initialisation, after growth and after loading a contiguous (older) state dict;
+    the gradient arrives in the same layout (no copy by autograd). The field equals the
+    ``grid_sample`` field (the compiled path switched off) to rounding, gradients too."""
+    cls = TensoRFCPField if kind == "tensorf_cp" else HexPlaneField
+    kw = ({"rank": 3, "resolution_init": (6, 6, 6, 5), "resolution_final": (9, 9, 9, 7),
+           "n_stages": 2, "growth_steps": 10} if kind == "tensorf_cp"
+          else {"rank": 3, "resolution": (9, 9, 9, 7)})
+    field = cls(**kw)
+
+    def channel_last(p):
+        return p.movedim(0, -1).is_contiguous()
+
+    assert all(channel_last(p) for p in field.grids.factors)
+    g = torch.Generator().manual_seed(2)
+    xyz, t = torch.rand(700, 3, generator=g) * 2 - 1, torch.rand(700, 1, generator=g)
+    w = torch.randn(700, 4, generator=g)
+    results = []
+    for compiled in (True, False):
+        if not compiled:
+            monkeypatch.setattr(grids, "interpolate", lambda *a, **k: None)
+        field.zero_grad(set_to_none=True)
+        sigma, rgb = field(xyz, t)
+        (torch.cat([sigma[:, None], rgb], 1) * w).sum().backward()
+        if compiled:
+            assert all(channel_last(p.grad) for p in field.grids.factors)
+        grads = [p.grad.clone() for p in field.grids.factors]
+        results.append((sigma.detach(), rgb.detach(), grads))
+    (s1, c1, g1), (s2, c2, g2) = results
+    assert torch.allclose(s1, s2, rtol=1e-5, atol=1e-6)
+    assert torch.allclose(c1, c2, rtol=1e-5, atol=1e-6)
+    for a, b in zip(g1, g2):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-6)
+    if kind == "tensorf_cp":
+        field.upsample((9, 9, 9, 7))
+        assert all(channel_last(p) for p in field.grids.factors)
+    state = {k: v.contiguous() for k, v in field.state_dict().items()}
+    fresh = cls(**kw)
+    fresh.load_state_dict(state)
+    assert all(channel_last(p) for p in fresh.grids.factors)
+    for a, b in zip(fresh.grids.factors, field.grids.factors):
+        assert torch.equal(a, b)
