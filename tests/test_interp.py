@@ -1,4 +1,4 @@
-"""The CPU's compiled interpolation of lines and planes (baselines.interp): values and
+"""The CPU's compiled multilinear interpolation (baselines.interp): values and
 gradients against the explicit corner gather, the cases it hands to ``grid_sample``, and
 the channel-last layout of the factor grids that read it."""
 
@@ -27,7 +27,7 @@ def _case(shape: tuple[int, ...], n: int, seed: int, dtype=torch.float32):
     return grid, coords
 
 
-@pytest.mark.parametrize("shape", [(3, 7), (5, 2), (3, 5, 9), (4, 2, 6)])
+@pytest.mark.parametrize("shape", [(3, 7), (5, 2), (3, 5, 9), (4, 2, 6), (2, 4, 5, 6)])
 @pytest.mark.parametrize("align,padding", [(True, "zeros"), (False, "zeros"),
                                            (True, "border"), (False, "border")])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -60,17 +60,17 @@ def test_known_values_and_points_that_read_nothing():
     assert beyond.item() == pytest.approx(2.0)
     (g,) = torch.autograd.grad(out.sum(), line)
     assert g.flatten().tolist() == [0.0, 0.5, 1.5]
-    i, w = corners(torch.tensor([[float("nan"), 2.75]]))
-    assert i[0, 0].item() < -1 and i[0, 1].item() == 2 and w[0, 1].tolist() == [0.25, 0.75]
+    lower, w = corners(torch.tensor([[float("nan"), 2.75], [1.0, float("inf")]]))
+    assert lower.tolist() == [[-2, 2], [1, -2]] and w[0, 1].tolist() == [0.25, 0.75]
 
 
 def test_cases_left_to_grid_sample():
-    """A 3-D grid, coordinates that need a gradient, a GPU-less meta tensor and mixed
-    dtypes are not served (``None``); ``sample_points`` then gives ``grid_sample``'s
+    """A grid of four axes, coordinates that need a gradient, a tensor off the CPU and
+    mixed dtypes are not served (``None``); ``sample_points`` then gives ``grid_sample``'s
     values, with the coordinates' gradient."""
     grid, coords = _case((2, 5, 6), 50, 3)
     assert supported(grid, coords)
-    assert not supported(torch.zeros(2, 3, 4, 5), torch.zeros(7, 3))
+    assert not supported(torch.zeros(2, 3, 4, 5, 2), torch.zeros(7, 4))
     assert not supported(grid.to("meta"), coords.to("meta"))
     assert not supported(grid, coords.double())
     c = coords.clone().requires_grad_(True)
