@@ -22,6 +22,7 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -252,6 +253,12 @@ def channels_last(grid: Tensor) -> Tensor:
     return grid.movedim(0, -1).contiguous().movedim(-1, 0)
 
 
+def device_layout(grid: Tensor) -> Tensor:
+    """A factor's layout on its device: :func:`channels_last` on a CPU, contiguous
+    elsewhere (where ``grid_sample`` reads it and fused optimisers step it as before)."""
+    return channels_last(grid) if grid.device.type == "cpu" else grid.contiguous()
+
+
 class FactorGrids(nn.Module):
     """Dense factor grids over subsets of the 4 input axes ``(x, y, z, t)``.
 
@@ -279,7 +286,7 @@ class FactorGrids(nn.Module):
         self.factors = nn.ParameterList()
         for shape in shapes:
             val = std * torch.randn((channels, *shape), generator=generator)
-            self.factors.append(nn.Parameter(channels_last(val)))
+            self.factors.append(nn.Parameter(device_layout(val)))
 
     @property
     def shapes(self) -> list[tuple[int, ...]]:
@@ -298,7 +305,15 @@ class FactorGrids(nn.Module):
             for j, shape in enumerate(shapes):
                 if tuple(shape) != self.shapes[j]:
                     new = upsample_grid(self.factors[j].detach(), shape, self.align_corners[j])
-                    self.factors[j] = nn.Parameter(channels_last(new))
+                    self.factors[j] = nn.Parameter(device_layout(new))
+
+    def _apply(self, fn: Any, recurse: bool = True) -> FactorGrids:  # type: ignore[override]
+        """After a move or cast (``.to``, ``.cuda``, ``.double``) every factor takes its
+        device's layout (:func:`device_layout`)."""
+        super()._apply(fn, recurse)
+        for f in self.factors:
+            f.data = device_layout(f.data)
+        return self
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
         # A checkpoint written after growth holds larger factors: resize before loading.
@@ -306,6 +321,6 @@ class FactorGrids(nn.Module):
             saved = state_dict.get(f"{prefix}factors.{j}")
             if saved is not None and tuple(saved.shape) != tuple(self.factors[j].shape):
                 device = self.factors[j].device
-                self.factors[j] = nn.Parameter(channels_last(torch.empty(saved.shape,
+                self.factors[j] = nn.Parameter(device_layout(torch.empty(saved.shape,
                                                                          device=device)))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

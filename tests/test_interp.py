@@ -86,8 +86,9 @@ def test_cases_left_to_grid_sample():
 
 @pytest.mark.parametrize("kind", ["tensorf_cp", "hexplane"])
 def test_factor_grids_are_channel_last_and_their_gradients_stay_so(kind, monkeypatch):
-    """The factors keep their ``[C, *R]`` shape and values but store channels innermost,
-    at initialisation, after growth and after loading a contiguous (older) state dict;
+    """On a CPU the factors keep their ``[C, *R]`` shape and values but store channels
+    innermost, at initialisation, after growth, after loading a contiguous (older) state
+    dict and after a cast; off the CPU they are contiguous;
     the gradient arrives in the same layout (no copy by autograd). The field equals the
     ``grid_sample`` field (the compiled path switched off) to rounding, gradients too."""
     cls = TensoRFCPField if kind == "tensorf_cp" else HexPlaneField
@@ -128,3 +129,7 @@ def test_factor_grids_are_channel_last_and_their_gradients_stay_so(kind, monkeyp
     assert all(channel_last(p) for p in fresh.grids.factors)
     for a, b in zip(fresh.grids.factors, field.grids.factors):
         assert torch.equal(a, b)
+    fresh.double()                                       # a cast keeps the CPU layout
+    assert all(channel_last(p) and p.dtype == torch.float64 for p in fresh.grids.factors)
+    fresh.to("meta")                                     # off the CPU: contiguous, as before
+    assert all(p.is_contiguous() for p in fresh.grids.factors)
