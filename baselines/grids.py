@@ -81,11 +81,11 @@ def sample_points(grid: Tensor, coords: Tensor, align_corners: bool = True,
                   padding: str = "border") -> Tensor:
     """:func:`sample_grid`, channel-last: ``[N, C]``.
 
-    A line or plane on the CPU goes to the compiled loops of :mod:`baselines.interp`
-    (channel-last reads; the grid's gradient only). Anything else (a GPU, a 3-D grid,
-    coordinates that need a gradient) goes to ``grid_sample``, on a CPU with its points
-    split into :func:`cpu_batches` batch entries (:func:`sample_grid_split`); the result
-    is then a transposed view."""
+    A grid of 1–3 axes on the CPU goes to the compiled loops of :mod:`baselines.interp`
+    (channel-last reads; the grid's gradient only). Anything else (a GPU, a grid of four
+    axes, coordinates that need a gradient, mixed dtypes, no numba) goes to
+    ``grid_sample``, on a CPU with its points split into :func:`cpu_batches` batch
+    entries (:func:`sample_grid_split`); the result is then a transposed view."""
     out = interpolate(grid, coords, align_corners, padding)
     if out is None:
         k = cpu_batches(coords.shape[0], grid)
@@ -313,6 +313,8 @@ class FactorGrids(nn.Module):
         super()._apply(fn, recurse)
         for f in self.factors:
             f.data = device_layout(f.data)
+            if f.grad is not None:
+                f.grad = device_layout(f.grad)
         return self
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[override]
@@ -321,6 +323,6 @@ class FactorGrids(nn.Module):
             saved = state_dict.get(f"{prefix}factors.{j}")
             if saved is not None and tuple(saved.shape) != tuple(self.factors[j].shape):
                 device = self.factors[j].device
-                self.factors[j] = nn.Parameter(device_layout(torch.empty(saved.shape,
-                                                                         device=device)))
+                blank = torch.empty(saved.shape, dtype=saved.dtype, device=device)
+                self.factors[j] = nn.Parameter(device_layout(blank))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

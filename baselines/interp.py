@@ -19,15 +19,19 @@ clamps ``p`` first). Its gradient with respect to the grid is the transposed sca
 Why not ``grid_sample``: its CPU kernels keep the channels outermost, so each corner
 costs ``C`` strided reads, and its backward accumulates one batch entry per thread into
 a full-size gradient buffer. Here the grid is read channel-last (``[R_0, …, C]``, one
-contiguous row of ``C`` values per vertex; the factors are stored so,
-:func:`~baselines.grids.channels_last`) at its ``2^d`` corners by compiled loops (numba),
-on one thread: at
-13 000 points, forward and backward, a 128² plane of 32 channels takes 2.3 ms against
-7.2 ms, a line 3.5–4.9× less (docs/results/history.md, "Session 50"; splitting the points
-between two threads was slower, as torch's OpenMP workers keep spinning between ops).
-The values are the corner gather's, equal to ``grid_sample``'s up to the rounding of the
-weights. The points' coordinates get no gradient: where one is asked for, or numba is
-missing, :func:`interpolate` returns ``None`` and the caller uses ``grid_sample``.
+contiguous row of ``C`` values per vertex; the factors are stored so on a CPU,
+:func:`~baselines.grids.device_layout`) at its ``2^d`` corners by compiled loops
+(numba), on one thread. At 13 000 points, forward and backward, a 128² plane of 32
+channels takes 2.3 ms against 7.2 ms, a line 3.5–4.9× less (docs/results/history.md,
+"Session 50"). Splitting the points between two threads was slower, as torch's OpenMP
+workers keep spinning between ops.
+
+The values are the corner gather's: ``grid_sample``'s up to the rounding of the weights.
+A point with a non-finite coordinate reads NaN, as with ``grid_sample``'s zero padding
+(with border padding, ``±inf`` is clamped to the border first and a NaN reads NaN, where
+``grid_sample`` reads some vertex); a point far outside reads zero. The points'
+coordinates get no gradient: where one is asked for, or numba is missing,
+:func:`interpolate` returns ``None`` and the caller uses ``grid_sample``.
 """
 
 from __future__ import annotations
@@ -38,9 +42,13 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from eventrecon.errors import InputError
 from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline
 
-__all__ = ["corners", "interpolate", "supported", "vertex_coords"]
+__all__ = ["NON_FINITE", "corners", "interpolate", "supported", "vertex_coords"]
+
+#: The lower corner of a non-finite coordinate (every other coordinate's is ≥ −2).
+NON_FINITE = -3
 
 
 def vertex_coords(coords: Tensor, sizes: tuple[int, ...], align_corners: bool,
@@ -67,16 +75,18 @@ def vertex_coords(coords: Tensor, sizes: tuple[int, ...], align_corners: bool,
 def corners(p: Tensor) -> tuple[Tensor, Tensor]:
     """Vertex units ``p [N, d]`` → the lower corner ``i = ⌊p⌋ [N, d]`` (int64) and the
     weights ``[N, d, 2]``: ``(1 − (p − i), p − i)`` per axis, in ``p``'s dtype (so the
-    compiled loops multiply in that dtype). A non-finite coordinate gives a lower corner
-    of −2, outside every grid.
+    compiled loops multiply in that dtype). A non-finite coordinate gets the lower corner
+    :data:`NON_FINITE`, outside every grid (its point reads NaN); a huge finite one lies
+    outside too, and reads zero.
 
-    >>> i, w = corners(torch.tensor([[1.25, float("nan")]]))
-    >>> i.tolist(), w[:, 0].tolist()
-    ([[1, -2]], [[0.75, 0.25]])
+    >>> i, w = corners(torch.tensor([[1.25, float("nan")], [-1e30, 1e30]]))
+    >>> i.tolist(), w[0, 0].tolist()
+    ([[1, -3], [-2, 2147483648]], [0.75, 0.25])
     """
     lo = torch.floor(p)
     frac = p - lo
-    lower = torch.nan_to_num(lo, nan=-2.0, posinf=-2.0, neginf=-2.0).clamp(-2, 2 ** 31)
+    lower = torch.nan_to_num(lo, nan=NON_FINITE, posinf=NON_FINITE, neginf=NON_FINITE)
+    lower = lower.clamp(NON_FINITE + 1, 2 ** 31).masked_fill_(~torch.isfinite(lo), NON_FINITE)
     return lower.long(), torch.stack([1 - frac, frac], dim=-1).contiguous()
 
 
@@ -134,10 +144,14 @@ def _table(grid: Tensor) -> Tensor:
 
 
 def _read(grid: Tensor, lower: Tensor, weights: Tensor) -> Tensor:
-    """The forward pass: ``grid [C, *R]`` at the points' corners → ``[N, C]``."""
+    """The forward pass: ``grid [C, *R]`` at the points' corners → ``[N, C]``; NaN for a
+    point with a non-finite coordinate (as ``grid_sample`` with zero padding gives)."""
     out = grid.new_empty(lower.shape[0], grid.shape[0])
     sizes = torch.tensor(grid.shape[1:], dtype=torch.long)
     _gather(_table(grid).numpy(), sizes.numpy(), lower.numpy(), weights.numpy(), out.numpy())
+    bad = (lower == NON_FINITE).any(1)
+    if bool(bad.any()):
+        out[bad] = float("nan")
     return out
 
 
@@ -151,6 +165,7 @@ class _Interpolate(torch.autograd.Function):
         return _read(grid, lower, weights)
 
     @staticmethod
+    @torch.autograd.function.once_differentiable
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None, None]:  # type: ignore[override]
         lower, weights = ctx.saved_tensors
         c, *sizes = ctx.grid_shape
@@ -172,7 +187,15 @@ def interpolate(grid: Tensor, coords: Tensor, align_corners: bool = True,
                 padding: str = "zeros") -> Tensor | None:
     """Multilinear interpolation of ``grid [C, R_0, …]`` at normalised ``coords
     [N, d]`` → ``[N, C]`` (channel-last), differentiable with respect to ``grid``;
-    ``None`` where :func:`supported` is false (then use ``grid_sample``)."""
+    ``None`` where :func:`supported` is false (then use ``grid_sample``).
+
+    Raises:
+        InputError: ``coords`` is not ``[N, d]`` for the grid's ``d`` axes.
+    """
+    if coords.dim() != 2 or coords.shape[1] != grid.dim() - 1:
+        raise InputError("baselines.interp", "coords",
+                         f"[N, {grid.dim() - 1}] for a grid of shape {list(grid.shape)}",
+                         list(coords.shape))
     if not supported(grid, coords):
         return None
     p = vertex_coords(coords.detach(), tuple(grid.shape[1:]), align_corners, padding)

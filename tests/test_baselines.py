@@ -54,9 +54,21 @@ def _points(n: int, seed: int) -> tuple[Tensor, Tensor]:
 
 
 # ---------------------------------------------------------------- grid helpers
+@pytest.fixture(params=["compiled", "grid_sample"])
+def sampler(request, monkeypatch):
+    """Both paths of ``sample_grid``: the CPU's compiled loops, and ``grid_sample`` (the
+    GPU's, and the CPU's without numba) with the compiled path switched off."""
+    if request.param == "grid_sample":
+        import baselines.grids as grids
+
+        monkeypatch.setattr(grids, "interpolate", lambda *a, **k: None)
+    return request.param
+
+
 @pytest.mark.parametrize("shape", [(3, 7), (3, 5, 9), (2, 4, 5, 6)])
-@pytest.mark.parametrize("align,padding", [(True, "border"), (False, "zeros")])
-def test_sample_grid_matches_explicit_gather(shape, align, padding):
+@pytest.mark.parametrize("align,padding", [(True, "border"), (False, "zeros"),
+                                           (True, "zeros"), (False, "border")])
+def test_sample_grid_matches_explicit_gather(shape, align, padding, sampler):
     g = torch.Generator().manual_seed(0)
     grid = torch.randn(shape, generator=g)
     coords = torch.rand(500, len(shape) - 1, generator=g) * 2.2 - 1.1  # some outside
@@ -69,7 +81,8 @@ def test_sample_grid_matches_explicit_gather(shape, align, padding):
 
 @pytest.mark.parametrize("shape", [(3, 40), (3, 17, 19), (2, 6, 5, 7)])
 def test_sample_grid_split_over_threads_gives_the_same_values_and_summed_gradients(shape):
-    """Where ``grid_sample`` serves (a GPU, a 3-D grid, coordinates with a gradient), on
+    """Where ``grid_sample`` serves (a GPU, a grid of four axes, coordinates with a
+    gradient, no numba), on
     2 threads the points go to it as 2 batch entries (the last padded): values bit for bit
     those of one entry, the grid's gradient the same up to the rounding of its two partial
     sums; both match the explicit gather."""
@@ -134,7 +147,7 @@ def test_factorised_field_on_split_grid_sample_equals_the_one_thread_field(kind,
         assert torch.allclose(a, b, rtol=1e-5, atol=1e-5)
 
 
-def test_sample_conventions_known_values():
+def test_sample_conventions_known_values(sampler):
     line = torch.tensor([[2.0, 4.0]])  # R = 2
     c = torch.tensor([[-1.0], [-0.5], [0.5], [1.0]])
     # align_corners=True: -1 and +1 on the two vertices

@@ -9,7 +9,8 @@ import torch
 
 import baselines.grids as grids
 from baselines import HexPlaneField, TensoRFCPField
-from baselines.interp import corners, interpolate, supported
+from baselines.interp import NON_FINITE, corners, interpolate, supported
+from eventrecon.errors import InputError
 from eventrecon.sim.pipeline import torch_threads
 
 
@@ -48,20 +49,52 @@ def test_values_and_grid_gradient_match_the_explicit_gather(shape, align, paddin
     assert (g_new - g_ref).abs().max().item() <= 20 * tol
 
 
-def test_known_values_and_points_that_read_nothing():
-    """A line ``[0, 1, 4]``: halfway between vertices 1 and 2 is 2.5; with zero padding
-    and ``align_corners=False`` a point half a cell beyond the last vertex reads half of
-    it; NaN and huge coordinates read nothing (zero), and their gradient is zero."""
+def test_known_values_and_non_finite_or_far_points():
+    """A line ``[0, 1, 4]``: halfway between vertices 1 and 2 reads 2.5; with zero padding
+    and ``align_corners=False`` the outer edge (half a cell beyond the last vertex) reads
+    half of it. As with ``grid_sample``'s zero padding, a NaN or infinite coordinate reads
+    NaN and a huge finite one zero; none of them sends a gradient to the grid. With border
+    padding ``±inf`` reads the border vertex, and a NaN still reads NaN."""
     line = torch.tensor([[0.0, 1.0, 4.0]], requires_grad=True)
-    c = torch.tensor([[0.5], [1.0], [float("nan")], [1e30], [-1e30], [float("inf")]])
-    out = interpolate(line, c, True, "zeros")
-    assert out.flatten().tolist() == [2.5, 4.0, 0.0, 0.0, 0.0, 0.0]
+    c = torch.tensor([[0.5], [1.0], [float("nan")], [1e30], [-1e30], [float("inf")],
+                      [-float("inf")]])
+    out = interpolate(line, c, True, "zeros").flatten()
+    ref = grids.unsplit(grids.sample_grid_split(line.detach(), c, 1, True, "zeros"), 7)
+    assert torch.equal(out.isnan(), ref.flatten().isnan())
+    assert out.nan_to_num().tolist() == [2.5, 4.0, 0.0, 0.0, 0.0, 0.0, 0.0]
     beyond = interpolate(line.detach(), torch.tensor([[1.0]]), False, "zeros")     # p = 2.5
     assert beyond.item() == pytest.approx(2.0)
-    (g,) = torch.autograd.grad(out.sum(), line)
+    (g,) = torch.autograd.grad(out[:2].sum() + out[3:5].sum(), line, retain_graph=True)
     assert g.flatten().tolist() == [0.0, 0.5, 1.5]
+    (g_all,) = torch.autograd.grad(out.nan_to_num().sum(), line)
+    assert torch.isfinite(g_all).all()
+    border = interpolate(line.detach(), c, True, "border").flatten()
+    assert border[[3, 4, 5, 6]].tolist() == [4.0, 0.0, 4.0, 0.0] and border[2].isnan()
     lower, w = corners(torch.tensor([[float("nan"), 2.75], [1.0, float("inf")]]))
-    assert lower.tolist() == [[-2, 2], [1, -2]] and w[0, 1].tolist() == [0.25, 0.75]
+    assert lower.tolist() == [[NON_FINITE, 2], [1, NON_FINITE]]
+    assert w[0, 1].tolist() == [0.25, 0.75]
+
+
+def test_coordinates_of_the_wrong_width_are_refused():
+    """One column per grid axis, or one error naming the expectation (a line read with two
+    columns would otherwise index past the grid's sizes in the compiled loop)."""
+    line, plane = torch.zeros(1, 3), torch.zeros(1, 3, 4)
+    for grid, coords in ((line, torch.zeros(5, 2)), (plane, torch.zeros(5, 1)),
+                         (plane, torch.zeros(5))):
+        with pytest.raises(InputError, match=r"coords.*\[N, \d\]"):
+            interpolate(grid, coords)
+        with pytest.raises(InputError):
+            grids.sample_points(grid, coords)
+
+
+def test_second_order_gradients_are_refused():
+    """The scatter is not itself differentiable: asking for a gradient of the gradient
+    raises instead of returning one that silently ignores it."""
+    grid = torch.randn(2, 5, requires_grad=True)
+    out = interpolate(grid, torch.rand(7, 1) * 2 - 1)
+    (g,) = torch.autograd.grad(out.square().sum(), grid, create_graph=True)
+    with pytest.raises(RuntimeError):
+        g.sum().backward()
 
 
 def test_cases_left_to_grid_sample():
@@ -133,3 +166,57 @@ def test_factor_grids_are_channel_last_and_their_gradients_stay_so(kind, monkeyp
     assert all(channel_last(p) and p.dtype == torch.float64 for p in fresh.grids.factors)
     fresh.to("meta")                                     # off the CPU: contiguous, as before
     assert all(p.is_contiguous() for p in fresh.grids.factors)
+
+
+def test_moments_loaded_in_another_layout_take_their_parameters_layout():
+    """A checkpoint written before the factors were stored channel-last (or on another
+    device) holds contiguous AdamW moments. Fused AdamW on a CPU walks a parameter and its
+    moments as flat memory, so without the module's load hook (``state_like_params``) it
+    pairs moments with the wrong elements (checked here: a visibly wrong step). With the
+    hook the moments take the parameters' strides, and the step equals the unfused one on
+    contiguous tensors."""
+    import copy
+
+    from eventrecon.module import state_like_params
+
+    g = torch.Generator().manual_seed(4)
+    field = HexPlaneField(rank=2, resolution=(6, 6, 6, 5))
+    params = [p.detach() for p in field.grids.factors]
+    grads = [torch.randn(p.shape, generator=g) for p in params]
+    older = [torch.nn.Parameter(p.contiguous()) for p in params]       # the old layout
+    opt_old = torch.optim.AdamW(older, lr=0.1, fused=True)
+    for q, gr in zip(older, grads):
+        q.grad = gr.clone()
+    opt_old.step()
+    saved = opt_old.state_dict()
+
+    def step(layout: bool, hook: bool) -> list[torch.Tensor]:
+        ps = [torch.nn.Parameter(p.clone(memory_format=torch.preserve_format) if layout
+                                 else p.contiguous()) for p in params]
+        opt = torch.optim.AdamW(ps, lr=0.1, fused=layout)
+        if hook:
+            opt.register_load_state_dict_post_hook(state_like_params)
+        opt.load_state_dict(copy.deepcopy(saved))         # fused: as saved
+        for p, gr in zip(ps, grads):
+            p.grad = torch.empty_like(p).copy_(gr)        # as autograd lays it: like p
+        opt.step()
+        return [p.detach().contiguous() for p in ps]
+
+    reference = step(layout=False, hook=False)
+    hooked = step(layout=True, hook=True)
+    unhooked = step(layout=True, hook=False)
+    assert max((a - b).abs().max().item() for a, b in zip(hooked, reference)) <= 1e-6
+    assert max((a - b).abs().max().item() for a, b in zip(unhooked, reference)) > 1e-3
+
+
+def test_a_grown_float64_field_reloads_in_float64():
+    """Loading a grown checkpoint resizes the factors in the saved dtype."""
+    kw = {"rank": 2, "resolution_init": (4, 4, 4, 4), "resolution_final": (7, 7, 7, 6),
+          "n_stages": 2, "growth_steps": 10}
+    grown = TensoRFCPField(**kw).double()
+    grown.upsample((7, 7, 7, 6))
+    fresh = TensoRFCPField(**kw).double()
+    fresh.load_state_dict(grown.state_dict())
+    for a, b in zip(fresh.grids.factors, grown.grids.factors):
+        assert a.dtype == torch.float64 and torch.equal(a, b)
+        assert a.movedim(0, -1).is_contiguous()

@@ -113,6 +113,22 @@ def adamw_fused(groups: list[dict[str, Any]]) -> bool:
                                 for p in params)
 
 
+def state_like_params(optimizer: torch.optim.Optimizer) -> None:
+    """Lay every per-parameter state tensor out as its parameter (the same strides).
+
+    A fused optimiser walks a parameter, its gradient and its moments as flat memory, so
+    a moment loaded with other strides would be paired with the wrong elements. That
+    happens when a checkpoint's moments were written in another layout: before the
+    factorised backbones stored their factors channel-last on a CPU
+    (``baselines.grids.device_layout``), or on another device. Registered as the
+    optimiser's load hook by :meth:`EventNeRFModule.configure_optimizers`."""
+    for param, state in optimizer.state.items():
+        for key, value in state.items():
+            if (isinstance(value, Tensor) and value.shape == param.shape
+                    and value.stride() != param.stride()):
+                state[key] = torch.empty_like(param, dtype=value.dtype).copy_(value)
+
+
 def step_generator(seed: int, step: int, stream: int = 0) -> torch.Generator:
     """A CPU generator determined by ``(seed, step, stream)`` (SplitMix-style mixing)."""
     x = (seed * 0x9E3779B97F4A7C15 + step * 0xBF58476D1CE4E5B9 + stream * 0x94D049BB133111EB)
@@ -162,7 +178,8 @@ class EventNeRFModule(L.LightningModule):
     # ------------------------------------------------------------------ optimiser
     def configure_optimizers(self) -> torch.optim.Optimizer:
         """AdamW over the field's parameter groups (re-run by growth schedules), in one
-        fused pass per parameter where the devices allow (:func:`adamw_fused`). Each group
+        fused pass per parameter where the devices allow (:func:`adamw_fused`; loaded moments
+        take their parameters' layout, :func:`state_like_params`). Each group
         keeps its own lr as ``base_lr``; :meth:`training_step` scales it by
         :func:`lr_factor` (constant unless ``trainer.lr_end_factor < 1`` or
         ``trainer.lr_warmup > 0``; ``trainer.lr_decay_start`` delays the decay)."""
@@ -170,8 +187,10 @@ class EventNeRFModule(L.LightningModule):
         groups = self.field.param_groups(cfg.lr)
         for g in groups:
             g["base_lr"] = float(g.get("lr", cfg.lr))
-        return torch.optim.AdamW(groups, lr=cfg.lr, weight_decay=cfg.weight_decay,
-                                 betas=cfg.betas, eps=cfg.eps, fused=adamw_fused(groups))
+        opt = torch.optim.AdamW(groups, lr=cfg.lr, weight_decay=cfg.weight_decay,
+                                betas=cfg.betas, eps=cfg.eps, fused=adamw_fused(groups))
+        opt.register_load_state_dict_post_hook(state_like_params)
+        return opt
 
     def _set_lr(self, step: int) -> None:
         """Every group's lr = its ``base_lr`` × :func:`lr_factor` at ``step``."""
