@@ -45,10 +45,7 @@ from torch import Tensor
 from eventrecon.errors import InputError
 from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline
 
-__all__ = ["NON_FINITE", "corners", "interpolate", "supported", "vertex_coords"]
-
-#: The lower corner of a non-finite coordinate (every other coordinate's is ≥ −2).
-NON_FINITE = -3
+__all__ = ["corners", "interpolate", "supported", "vertex_coords"]
 
 
 def vertex_coords(coords: Tensor, sizes: tuple[int, ...], align_corners: bool,
@@ -75,18 +72,17 @@ def vertex_coords(coords: Tensor, sizes: tuple[int, ...], align_corners: bool,
 def corners(p: Tensor) -> tuple[Tensor, Tensor]:
     """Vertex units ``p [N, d]`` → the lower corner ``i = ⌊p⌋ [N, d]`` (int64) and the
     weights ``[N, d, 2]``: ``(1 − (p − i), p − i)`` per axis, in ``p``'s dtype (so the
-    compiled loops multiply in that dtype). A non-finite coordinate gets the lower corner
-    :data:`NON_FINITE`, outside every grid (its point reads NaN); a huge finite one lies
-    outside too, and reads zero.
+    compiled loops multiply in that dtype). A non-finite coordinate gets NaN weights (its
+    point reads NaN) and a lower corner of −2, outside every grid, as a huge finite one
+    does (which reads zero).
 
     >>> i, w = corners(torch.tensor([[1.25, float("nan")], [-1e30, 1e30]]))
-    >>> i.tolist(), w[0, 0].tolist()
-    ([[1, -3], [-2, 2147483648]], [0.75, 0.25])
+    >>> i.tolist(), w[0, 0].tolist(), w[0, 1].isnan().tolist()
+    ([[1, -2], [-2, 2147483648]], [0.75, 0.25], [True, True])
     """
     lo = torch.floor(p)
     frac = p - lo
-    lower = torch.nan_to_num(lo, nan=NON_FINITE, posinf=NON_FINITE, neginf=NON_FINITE)
-    lower = lower.clamp(NON_FINITE + 1, 2 ** 31).masked_fill_(~torch.isfinite(lo), NON_FINITE)
+    lower = torch.nan_to_num(lo, nan=-2.0, posinf=-2.0, neginf=-2.0).clamp(-2, 2 ** 31)
     return lower.long(), torch.stack([1 - frac, frac], dim=-1).contiguous()
 
 
@@ -116,8 +112,12 @@ def _gather(table: Any, sizes: Any, lower: Any, weights: Any, out: Any) -> None:
     """``out[n] = Σ_j w_j table[row_j]`` over the corners of point ``n`` (compiled)."""
     c = table.shape[1]
     for n in range(lower.shape[0]):
+        fill = 0.0
+        for k in range(lower.shape[1]):
+            if weights[n, k, 0] != weights[n, k, 0]:        # NaN: a non-finite coordinate
+                fill = math.nan
         for ch in range(c):
-            out[n, ch] = 0.0
+            out[n, ch] = fill
         for j in range(1 << lower.shape[1]):
             row, w = _corner(sizes, lower, weights, n, j)
             if row >= 0:
@@ -149,9 +149,6 @@ def _read(grid: Tensor, lower: Tensor, weights: Tensor) -> Tensor:
     out = grid.new_empty(lower.shape[0], grid.shape[0])
     sizes = torch.tensor(grid.shape[1:], dtype=torch.long)
     _gather(_table(grid).numpy(), sizes.numpy(), lower.numpy(), weights.numpy(), out.numpy())
-    bad = (lower == NON_FINITE).any(1)
-    if bool(bad.any()):
-        out[bad] = float("nan")
     return out
 
 

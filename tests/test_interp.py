@@ -9,7 +9,7 @@ import torch
 
 import baselines.grids as grids
 from baselines import HexPlaneField, TensoRFCPField
-from baselines.interp import NON_FINITE, corners, interpolate, supported
+from baselines.interp import corners, interpolate, supported
 from eventrecon.errors import InputError
 from eventrecon.sim.pipeline import torch_threads
 
@@ -71,8 +71,8 @@ def test_known_values_and_non_finite_or_far_points():
     border = interpolate(line.detach(), c, True, "border").flatten()
     assert border[[3, 4, 5, 6]].tolist() == [4.0, 0.0, 4.0, 0.0] and border[2].isnan()
     lower, w = corners(torch.tensor([[float("nan"), 2.75], [1.0, float("inf")]]))
-    assert lower.tolist() == [[NON_FINITE, 2], [1, NON_FINITE]]
-    assert w[0, 1].tolist() == [0.25, 0.75]
+    assert lower.tolist() == [[-2, 2], [1, -2]] and w[0, 1].tolist() == [0.25, 0.75]
+    assert w[0, 0].isnan().all() and w[1, 1].isnan().all()
 
 
 def test_coordinates_of_the_wrong_width_are_refused():
