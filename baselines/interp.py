@@ -39,22 +39,20 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from eventrecon.errors import InputError
 from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline
 
-__all__ = ["interpolate", "supported", "vertex_coords"]
+__all__ = ["corners", "interpolate", "supported", "vertex_coords"]
 
 
 def vertex_coords(coords: Tensor, sizes: tuple[int, ...], align_corners: bool,
                   padding: str) -> Tensor:
     """Normalised coordinates ``[N, d]`` in ``[-1, 1]`` → vertex units ``[N, d]``, by
     ``grid_sample``'s formulas: ``(c + 1)/2 · (R − 1)`` (``align_corners``) or
-    ``((c + 1) R − 1)/2``; ``padding="border"`` clamps to ``[0, R − 1]``. The compiled
-    loops compute the same per point, in float64 (:func:`_axis`); this is its reference.
+    ``((c + 1) R − 1)/2``; ``padding="border"`` clamps to ``[0, R − 1]``.
 
     >>> vertex_coords(torch.tensor([[-1.0], [1.0]]), (5,), True, "zeros").flatten().tolist()
     [0.0, 4.0]
@@ -71,93 +69,72 @@ def vertex_coords(coords: Tensor, sizes: tuple[int, ...], align_corners: bool,
     return p
 
 
-@njit_inline
-def _axis(c: float, size: int, align: bool, border: bool) -> tuple[int, float]:
-    """One normalised coordinate → its lower vertex ``i = ⌊p⌋`` and fraction ``p − i``
-    (:func:`vertex_coords`' ``p``, in float64). A non-finite ``p`` gives ``(−2, NaN)``:
-    outside every grid, and a NaN that marks the point. A far ``p`` is held at ``−2`` or
-    ``2^31`` (outside; its fraction is never used)."""
-    if c != c:
-        return -2, math.nan
-    if align:
-        p = (c + 1.0) * 0.5 * (size - 1)
-    else:
-        p = ((c + 1.0) * size - 1.0) * 0.5
-    if border:
-        p = min(max(p, 0.0), size - 1.0)
-    if math.isinf(p):
-        return -2, math.nan
-    lo = min(max(math.floor(p), -2.0), 2.0 ** 31)
-    return int(lo), p - lo
+def corners(p: Tensor) -> tuple[Tensor, Tensor]:
+    """Vertex units ``p [N, d]`` → the lower corner ``i = ⌊p⌋ [N, d]`` (int64) and the
+    weights ``[N, d, 2]``: ``(1 − (p − i), p − i)`` per axis, in ``p``'s dtype (so the
+    compiled loops multiply in that dtype). A non-finite coordinate gets NaN weights (its
+    point reads NaN) and a lower corner of −2, outside every grid, as a huge finite one
+    does (which reads zero).
+
+    >>> i, w = corners(torch.tensor([[1.25, float("nan")], [-1e30, 1e30]]))
+    >>> i.tolist(), w[0, 0].tolist(), w[0, 1].isnan().tolist()
+    ([[1, -2], [-2, 2147483648]], [0.75, 0.25], [True, True])
+    """
+    lo = torch.floor(p)
+    frac = p - lo
+    lower = torch.nan_to_num(lo, nan=-2.0, posinf=-2.0, neginf=-2.0).clamp(-2, 2 ** 31)
+    return lower.long(), torch.stack([1 - frac, frac], dim=-1).contiguous()
 
 
 @njit_inline
-def _point(coords: Any, n: int, sizes: Any, align: bool, border: bool, lower: Any,
-           frac: Any) -> bool:
-    """Fill ``lower[k]``, ``frac[k]`` for point ``n`` (:func:`_axis`); whether every
-    coordinate is finite."""
-    finite = True
-    for k in range(coords.shape[1]):
-        lower[k], frac[k] = _axis(coords[n, k], sizes[k], align, border)
-        finite = finite and frac[k] == frac[k]
-    return finite
-
-
-@njit_inline
-def _corner(sizes: Any, lower: Any, frac: Any, j: int) -> tuple[int, float]:
-    """Corner ``j`` of the point in ``lower``, ``frac`` (bit ``d − 1 − k`` of ``j`` is its
-    offset ``b_k`` along axis ``k``): its row in the grid flattened channel-last,
-    ``Σ_k v_k Π_{l>k} R_l``, and its weight ``Π_k w_k(b_k)``; row −1 when outside."""
-    d = lower.shape[0]
-    row = 0
-    w = 1.0
-    for k in range(d):
+def _corner(sizes: Any, lower: Any, weights: Any, n: int, j: int) -> tuple[int, Any]:
+    """Corner ``j`` of point ``n`` (bit ``d − 1 − k`` of ``j`` is its offset ``b_k`` along
+    axis ``k``): its row in the grid flattened channel-last, ``Σ_k v_k Π_{l>k} R_l``, and
+    its weight ``Π_k w_k(b_k)``; row −1 when it lies outside."""
+    d = lower.shape[1]
+    b = (j >> (d - 1)) & 1
+    row = lower[n, 0] + b
+    w = weights[n, 0, b]
+    if row < 0 or row >= sizes[0]:
+        return -1, w
+    for k in range(1, d):
         b = (j >> (d - 1 - k)) & 1
-        v = lower[k] + b
+        v = lower[n, k] + b
         if v < 0 or v >= sizes[k]:
             return -1, w
         row = row * sizes[k] + v
-        w = w * (frac[k] if b else 1.0 - frac[k])
+        w = w * weights[n, k, b]
     return row, w
 
 
 @njit_borrowing
-def _gather(table: Any, sizes: Any, coords: Any, align: bool, border: bool, lower: Any,
-            frac: Any, weight: Any, out: Any) -> None:
-    """``out[n] = Σ_j w_j table[row_j]`` over the corners of point ``n``; NaN for a point
-    with a non-finite coordinate (compiled; ``lower``, ``frac``, ``weight``: scratch, the
-    last in the table's dtype, which each weight is rounded to before use)."""
+def _gather(table: Any, sizes: Any, lower: Any, weights: Any, out: Any) -> None:
+    """``out[n] = Σ_j w_j table[row_j]`` over the corners of point ``n`` (compiled)."""
     c = table.shape[1]
-    for n in range(coords.shape[0]):
-        finite = _point(coords, n, sizes, align, border, lower, frac)
+    for n in range(lower.shape[0]):
+        fill = 0.0
+        for k in range(lower.shape[1]):
+            if weights[n, k, 0] != weights[n, k, 0]:        # NaN: a non-finite coordinate
+                fill = math.nan
         for ch in range(c):
-            out[n, ch] = 0.0 if finite else math.nan
-        if not finite:
-            continue
-        for j in range(1 << coords.shape[1]):
-            row, w = _corner(sizes, lower, frac, j)
+            out[n, ch] = fill
+        for j in range(1 << lower.shape[1]):
+            row, w = _corner(sizes, lower, weights, n, j)
             if row >= 0:
-                weight[0] = w
-                wt = weight[0]                              # in the table's dtype
                 for ch in range(c):
-                    out[n, ch] += wt * table[row, ch]
+                    out[n, ch] += w * table[row, ch]
 
 
 @njit_borrowing
-def _scatter(grad: Any, sizes: Any, coords: Any, align: bool, border: bool, lower: Any,
-             frac: Any, weight: Any, table: Any) -> None:
+def _scatter(grad: Any, sizes: Any, lower: Any, weights: Any, table: Any) -> None:
     """``table[row_j] += w_j grad[n]``: the transpose of :func:`_gather` (compiled)."""
     c = table.shape[1]
-    for n in range(coords.shape[0]):
-        if not _point(coords, n, sizes, align, border, lower, frac):
-            continue
-        for j in range(1 << coords.shape[1]):
-            row, w = _corner(sizes, lower, frac, j)
+    for n in range(lower.shape[0]):
+        for j in range(1 << lower.shape[1]):
+            row, w = _corner(sizes, lower, weights, n, j)
             if row >= 0:
-                weight[0] = w
-                wt = weight[0]
                 for ch in range(c):
-                    table[row, ch] += wt * grad[n, ch]
+                    table[row, ch] += w * grad[n, ch]
 
 
 def _table(grid: Tensor) -> Tensor:
@@ -166,44 +143,33 @@ def _table(grid: Tensor) -> Tensor:
     return grid.detach().movedim(0, -1).reshape(-1, grid.shape[0]).contiguous()
 
 
-def _args(grid_shape: tuple[int, ...], coords: Tensor, align_corners: bool, padding: str,
-          dtype: torch.dtype) -> tuple[Any, ...]:
-    """The compiled loops' arguments after the table or gradient: sizes, coordinates,
-    the convention and the scratch arrays."""
-    d = len(grid_shape) - 1
-    return (np.asarray(grid_shape[1:], dtype=np.int64), coords.contiguous().numpy(),
-            bool(align_corners), padding == "border", np.empty(d, np.int64),
-            np.empty(d, np.float64), torch.empty(1, dtype=dtype).numpy())
+def _read(grid: Tensor, lower: Tensor, weights: Tensor) -> Tensor:
+    """The forward pass: ``grid [C, *R]`` at the points' corners → ``[N, C]``; NaN for a
+    point with a non-finite coordinate (as ``grid_sample`` with zero padding gives)."""
+    out = grid.new_empty(lower.shape[0], grid.shape[0])
+    sizes = torch.tensor(grid.shape[1:], dtype=torch.long)
+    _gather(_table(grid).numpy(), sizes.numpy(), lower.numpy(), weights.numpy(), out.numpy())
+    return out
 
 
 class _Interpolate(torch.autograd.Function):
-    """``(grid [C, *R], coords [N, d]) -> [N, C]``; the gradient reaches the grid only."""
+    """``(grid [C, *R], lower, weights) -> [N, C]``; the gradient reaches the grid only."""
 
     @staticmethod
-    def forward(ctx: Any, grid: Tensor, coords: Tensor, align_corners: bool,  # type: ignore[override]
-                padding: str) -> Tensor:
-        ctx.save_for_backward(coords)
-        ctx.convention = (tuple(grid.shape), align_corners, padding)
-        return _read(grid, coords, align_corners, padding)
+    def forward(ctx: Any, grid: Tensor, lower: Tensor, weights: Tensor) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(lower, weights)
+        ctx.grid_shape = tuple(grid.shape)
+        return _read(grid, lower, weights)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
-        (coords,) = ctx.saved_tensors
-        shape, align_corners, padding = ctx.convention
-        c, *sizes = shape
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None, None]:  # type: ignore[override]
+        lower, weights = ctx.saved_tensors
+        c, *sizes = ctx.grid_shape
         table = grad.new_zeros(math.prod(sizes), c)                      # [Π R, C]
-        _scatter(grad.contiguous().numpy(),
-                 *_args(shape, coords, align_corners, padding, grad.dtype), table.numpy())
-        return table.reshape(*sizes, c).movedim(-1, 0), None, None, None
-
-
-def _read(grid: Tensor, coords: Tensor, align_corners: bool, padding: str) -> Tensor:
-    """The forward pass: ``grid [C, *R]`` at the points ``coords [N, d]`` → ``[N, C]``."""
-    out = grid.new_empty(coords.shape[0], grid.shape[0])
-    _gather(_table(grid).numpy(), *_args(tuple(grid.shape), coords, align_corners, padding,
-                                         grid.dtype), out.numpy())
-    return out
+        _scatter(grad.contiguous().numpy(), torch.tensor(sizes, dtype=torch.long).numpy(),
+                 lower.numpy(), weights.numpy(), table.numpy())
+        return table.reshape(*sizes, c).movedim(-1, 0), None, None
 
 
 def supported(grid: Tensor, coords: Tensor) -> bool:
@@ -229,7 +195,8 @@ def interpolate(grid: Tensor, coords: Tensor, align_corners: bool = True,
                          list(coords.shape))
     if not supported(grid, coords):
         return None
-    coords = coords.detach()
+    p = vertex_coords(coords.detach(), tuple(grid.shape[1:]), align_corners, padding)
+    lower, weights = corners(p)
     if grid.requires_grad and torch.is_grad_enabled():
-        return _Interpolate.apply(grid, coords, align_corners, padding)
-    return _read(grid, coords, align_corners, padding)
+        return _Interpolate.apply(grid, lower, weights)
+    return _read(grid, lower, weights)

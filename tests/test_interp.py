@@ -9,7 +9,7 @@ import torch
 
 import baselines.grids as grids
 from baselines import HexPlaneField, TensoRFCPField
-from baselines.interp import interpolate, supported
+from baselines.interp import corners, interpolate, supported
 from eventrecon.errors import InputError
 from eventrecon.sim.pipeline import torch_threads
 
@@ -41,7 +41,7 @@ def test_values_and_grid_gradient_match_the_explicit_gather(shape, align, paddin
     out = interpolate(grid, coords, align, padding)
     assert out is not None and out.shape == (600, shape[0]) and out.dtype == dtype
     ref = grids.sample_grid_reference(grid, coords, align, padding).t()
-    tol = 5e-6 if dtype == torch.float32 else 1e-13        # vertex units: float64 here
+    tol = 1e-6 if dtype == torch.float32 else 1e-13
     assert (out - ref).abs().max().item() <= tol
     w = torch.randn(out.shape, generator=torch.Generator().manual_seed(1), dtype=dtype)
     (g_new,) = torch.autograd.grad((out * w).sum(), grid)
@@ -70,9 +70,9 @@ def test_known_values_and_non_finite_or_far_points():
     assert torch.isfinite(g_all).all()
     border = interpolate(line.detach(), c, True, "border").flatten()
     assert border[[3, 4, 5, 6]].tolist() == [4.0, 0.0, 4.0, 0.0] and border[2].isnan()
-    plane = torch.arange(12.0).reshape(1, 3, 4)
-    mixed = torch.tensor([[float("nan"), 0.0], [0.0, float("inf")], [0.0, 0.0]])
-    assert interpolate(plane, mixed).flatten()[:2].isnan().all()
+    lower, w = corners(torch.tensor([[float("nan"), 2.75], [1.0, float("inf")]]))
+    assert lower.tolist() == [[-2, 2], [1, -2]] and w[0, 1].tolist() == [0.25, 0.75]
+    assert w[0, 0].isnan().all() and w[1, 1].isnan().all()
 
 
 def test_coordinates_of_the_wrong_width_are_refused():
