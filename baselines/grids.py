@@ -323,6 +323,6 @@ class FactorGrids(nn.Module):
             saved = state_dict.get(f"{prefix}factors.{j}")
             if saved is not None and tuple(saved.shape) != tuple(self.factors[j].shape):
                 device = self.factors[j].device
-                blank = torch.empty(saved.shape, dtype=saved.dtype, device=device)
+                blank = torch.empty(saved.shape, dtype=self.factors[j].dtype, device=device)
                 self.factors[j] = nn.Parameter(device_layout(blank))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

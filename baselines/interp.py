@@ -29,7 +29,8 @@ workers keep spinning between ops.
 The values are the corner gather's: ``grid_sample``'s up to the rounding of the weights.
 A point with a non-finite coordinate reads NaN, as with ``grid_sample``'s zero padding
 (with border padding, ``±inf`` is clamped to the border first and a NaN reads NaN, where
-``grid_sample`` reads some vertex); a point far outside reads zero. The points'
+``grid_sample`` reads some vertex); a point far outside reads zero (unless its vertex
+coordinate overflows to ±inf: NaN, as ``grid_sample``). The points'
 coordinates get no gradient: where one is asked for, or numba is missing,
 :func:`interpolate` returns ``None`` and the caller uses ``grid_sample``.
 """

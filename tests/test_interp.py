@@ -162,10 +162,13 @@ def test_factor_grids_are_channel_last_and_their_gradients_stay_so(kind, monkeyp
     assert all(channel_last(p) for p in fresh.grids.factors)
     for a, b in zip(fresh.grids.factors, field.grids.factors):
         assert torch.equal(a, b)
+    for p in fresh.grids.factors:                        # gradients follow their factors
+        p.grad = torch.ones_like(p)
     fresh.double()                                       # a cast keeps the CPU layout
-    assert all(channel_last(p) and p.dtype == torch.float64 for p in fresh.grids.factors)
+    assert all(channel_last(p) and p.dtype == torch.float64 and channel_last(p.grad)
+               for p in fresh.grids.factors)
     fresh.to("meta")                                     # off the CPU: contiguous, as before
-    assert all(p.is_contiguous() for p in fresh.grids.factors)
+    assert all(p.is_contiguous() and p.grad.is_contiguous() for p in fresh.grids.factors)
 
 
 def test_moments_loaded_in_another_layout_take_their_parameters_layout():

@@ -449,3 +449,31 @@ def test_a_segment_trained_on_other_data_trains_again(data_dir: Path, tmp_path: 
     assert json.loads((seg / "done.json").read_text())["data_id"] == "changed-scene"
     assert again["data_id"] == "changed-scene"
     assert records.finished_metrics(out / "metrics.json", 4, False, 4, root.name) is None
+
+
+def test_the_module_lays_loaded_adamw_moments_out_as_their_parameters(data_dir: Path):
+    """``configure_optimizers`` registers ``state_like_params``: moments saved in another
+    layout (here column-major copies of the weights' moments, the same values) come back
+    with their parameters' strides, which the fused kernel's flat walk needs."""
+    cfg = tiny_config(data_dir)
+    props = build.scene_properties(cfg, build.load_dataset(cfg))
+    m = build.build_module(cfg, props, None, Segment(0, 1000))
+    opt = m.configure_optimizers()
+    for p in m.field.parameters():
+        p.grad = torch.randn_like(p)
+    opt.step()
+    saved = copy.deepcopy(opt.state_dict())
+    moved = 0
+    for state in saved["state"].values():
+        for key, value in state.items():
+            if value.dim() == 2:
+                state[key] = value.t().contiguous().t()
+                moved += 1
+    assert moved > 0
+    fresh = m.configure_optimizers()
+    fresh.load_state_dict(saved)
+    for p in m.field.parameters():
+        for key, value in fresh.state[p].items():
+            if value.dim():
+                assert value.stride() == p.stride(), key
+            assert torch.equal(value, opt.state[p][key])
