@@ -1,8 +1,8 @@
 """Multilinear interpolation of dense grids on the CPU, channel-last, with its gradient.
 
 A grid ``G [C, R_0, …, R_{d-1}]`` (``d`` = 1, 2 or 3: the factorised backbones' lines
-and planes) is read at ``N`` points given
-in vertex units ``p [N, d]`` (:func:`vertex_coords`: ``p_k = i`` on vertex ``i``):
+and planes) is read at ``N`` points given in vertex units ``p [N, d]``
+(:func:`vertex_coords`: ``p_k = i`` on vertex ``i``):
 
 .. math::
     f_n = \\sum_{b \\in \\{0,1\\}^d} \\Big(\\prod_k w_k(b_k)\\Big)\\,
@@ -30,9 +30,9 @@ The values are the corner gather's: ``grid_sample``'s up to the rounding of the 
 A point with a non-finite coordinate reads NaN, as with ``grid_sample``'s zero padding
 (with border padding, ``±inf`` is clamped to the border first and a NaN reads NaN, where
 ``grid_sample`` reads some vertex); a point far outside reads zero (unless its vertex
-coordinate overflows to ±inf: NaN, as ``grid_sample``). The points'
-coordinates get no gradient: where one is asked for, or numba is missing,
-:func:`interpolate` returns ``None`` and the caller uses ``grid_sample``.
+coordinate overflows to ±inf: NaN, as ``grid_sample``). The points' coordinates get no
+gradient: where one is asked for, or numba is missing, :func:`interpolate` returns
+``None`` and the caller uses ``grid_sample``.
 """
 
 from __future__ import annotations
