@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from baselines.interp import interpolate
+from baselines.interp import interpolate, vertex_coords
 from eventrecon.errors import InputError
 
 _MODES = {1: "linear", 2: "bilinear", 3: "trilinear"}
@@ -168,15 +168,12 @@ def unsplit(values: Tensor, n: int) -> Tensor:
 def sample_grid_reference(grid: Tensor, coords: Tensor, align_corners: bool = True,
                           padding: str = "border") -> Tensor:
     """Slow, explicit version of :func:`sample_grid`: a Python loop over the ``2^d`` corners
-    with integer gathers. Same shapes (``[C, N]``) and conventions; for tests."""
+    with integer gathers. Same shapes (``[C, N]``) and conventions; for tests. The vertex
+    units are :func:`baselines.interp.vertex_coords`' (the one statement of the convention;
+    the tests check it through ``grid_sample``, which computes its own)."""
     d = grid.dim() - 1
-    res = torch.tensor(grid.shape[1:], device=coords.device, dtype=coords.dtype)
-    if align_corners:
-        pos = (coords + 1) / 2 * (res - 1)
-    else:
-        pos = ((coords + 1) * res - 1) / 2
-    if padding == "border":
-        pos = torch.minimum(pos.clamp(min=0), res - 1)
+    sizes = tuple(grid.shape[1:])
+    pos = vertex_coords(coords, sizes, align_corners, padding)
     i0 = pos.floor().long()
     frac = pos - i0.to(pos.dtype)
     flat = grid.reshape(grid.shape[0], -1)
@@ -189,8 +186,8 @@ def sample_grid_reference(grid: Tensor, coords: Tensor, align_corners: bool = Tr
         for k, b in enumerate(corner):
             w = w * (frac[:, k] if b else 1 - frac[:, k])
             idx = i0[:, k] + b
-            valid &= (idx >= 0) & (idx <= int(res[k]) - 1)
-            lin = lin + idx.clamp(0, int(res[k]) - 1) * strides[k]
+            valid &= (idx >= 0) & (idx <= sizes[k] - 1)
+            lin = lin + idx.clamp(0, sizes[k] - 1) * strides[k]
         out = out + (w * valid)[None, :] * flat[:, lin]
     return out
 

@@ -60,7 +60,7 @@ def vertex_coords(coords: Tensor, sizes: tuple[int, ...], align_corners: bool,
     >>> vertex_coords(torch.tensor([[-1.0], [1.0]]), (5,), False, "zeros").flatten().tolist()
     [-0.5, 4.5]
     """
-    res = torch.tensor(sizes, dtype=coords.dtype)
+    res = torch.tensor(sizes, dtype=coords.dtype, device=coords.device)
     if align_corners:
         p = (coords + 1) / 2 * (res - 1)
     else:
