@@ -1,0 +1,154 @@
+"""A 346×260 evaluation image of the default job, timed with any commit's code.
+
+    python -m benchmarks image                        # this checkout, untrained field
+    python -m benchmarks image --run outputs/.../RUN  # the field of a finished run
+    # the same image with an older commit's code (issue 12's literal comparison):
+    git worktree add --detach /tmp/old 526830c
+    PYTHONPATH=/tmp/old/src python benchmarks/bench_image.py --repo /tmp/old
+
+Builds the field and the renderer of ``python train.py``'s configuration (``--override``
+adds Hydra overrides) from the ``conf/`` of ``--repo`` (default: this checkout) with
+whichever ``eventrecon`` Python imports, and renders ``--images`` full images of one
+camera of the scene's ring rig (``scene.rig``, at ``--width``×``--height``) at times
+``(i + 0.5)/n``, under the image autocast the run would use (bf16 on a CPU with native
+bf16 at HEAD; the code of issue 12's filing commit renders in fp32). Logs the median
+seconds per image and the field samples per pixel where the renderer counts them.
+
+Without ``--run`` the field is freshly initialised (seed 0): every ray is fog and an
+occupancy grid, where there is one, starts fully occupied, so nothing is skipped -- the
+worst case, and the case issue 12 measured (a 20-step run). With ``--run`` the field and
+the grid come from the run's last checkpoint (this checkout's code only).
+
+The code of older commits builds its field and renderer through ``eventrecon.runner``
+instead of ``eventrecon.build``; both are handled here. That code also fails on a chunk
+of rays none of which meets the clipping cylinder (the field is asked for zero rows), so
+such a call returns empty outputs here without asking the field.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import statistics
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig, OmegaConf
+
+log = logging.getLogger("benchmarks.image")
+
+HERE = Path(__file__).resolve().parent
+
+
+def _config(repo: Path, overrides: list[str], run: Path | None) -> DictConfig:
+    """The run's saved config (``run/.hydra/config.yaml``) or the default job's."""
+    if run is not None:
+        return OmegaConf.load(run / ".hydra" / "config.yaml")
+    with initialize_config_dir(config_dir=str(repo / "conf"), version_base="1.3"):
+        return compose(config_name="config", overrides=["logger=none", *overrides])
+
+
+def _field_and_renderer(cfg: DictConfig, run: Path | None) -> tuple[Any, Any]:
+    """Field and renderer of ``cfg``, by the imported code's own builders."""
+    props = SimpleNamespace(cylinder=dict(cfg.scene.cylinder))
+    if "render" in cfg:                    # this layout: a render group, eventrecon.build
+        from eventrecon import build
+        from eventrecon.precision import run_precision
+        if run is not None:
+            return build.load_segment(cfg, props, run / "seg0")
+        field = build.build_field(cfg.model)
+        renderer = build.build_renderer(cfg.render, props, run_precision(cfg))
+        field.set_scene_box(*renderer.cylinder.box())
+        return field, renderer
+    if run is not None:
+        raise SystemExit("--run needs this checkout's code")
+    # the older layout, e.g. issue 12's filing commit
+    from eventrecon import runner
+    return runner.build_field(cfg.model), runner.build_renderer(cfg, props)
+
+
+def _guard_empty(field: Any) -> None:
+    """Answer a call with zero rows with empty outputs (module docstring)."""
+    forward = field.forward
+
+    def guarded(xyz: torch.Tensor, t: torch.Tensor, *args: Any, **kwargs: Any) -> Any:
+        if xyz.shape[0] == 0:
+            return xyz.new_zeros(0), xyz.new_zeros(0, 3)
+        return forward(xyz, t, *args, **kwargs)
+    field.forward = guarded
+
+
+def time_images(field: Any, renderer: Any, rig: dict, n: int, width: int, height: int
+                ) -> dict[str, Any]:
+    """Seconds per ``width``×``height`` image (view ``i mod 3`` of a three-camera ring at
+    the scene's radius, elevation, field of view and target; time ``(i + 0.5)/n``; rays
+    computed before the clock starts) and field samples per pixel where counted."""
+    from eventrecon.render.cameras import ring_rig
+    cams = ring_rig(3, width, height, radius=float(rig.get("radius", 2.5)),
+                    elevation_deg=float(rig.get("elevation_deg", 15.0)),
+                    fov_deg=float(rig.get("fov_deg", 40.0)),
+                    target=tuple(rig.get("target", (0.0, -0.25, 0.0))))
+    for v in range(3):
+        cams.image_rays(v)
+    field.eval()
+    times, per_px = [], []
+    with torch.no_grad():
+        for i in range(n):
+            if hasattr(renderer, "field_inputs"):
+                renderer.field_inputs = 0
+            t0 = time.perf_counter()
+            renderer.render_image(field, cams, i % 3, (i + 0.5) / n)
+            times.append(time.perf_counter() - t0)
+            if hasattr(renderer, "field_inputs"):
+                per_px.append(renderer.field_inputs / (width * height))
+    return {"seconds": [round(t, 3) for t in times], "median_s": statistics.median(times),
+            "samples_per_px": statistics.median(per_px) if per_px else None}
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m benchmarks image",
+                                 description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog="\n".join(__doc__.splitlines()[1:]))
+    ap.add_argument("--repo", default=str(HERE.parent),
+                    help="checkout whose conf/ gives the default job (default: this one)")
+    ap.add_argument("--run", help="a finished run's folder: its field and grid")
+    ap.add_argument("--override", nargs="*", default=[], help="Hydra overrides")
+    ap.add_argument("--images", type=int, default=3)
+    ap.add_argument("--width", type=int, default=346)
+    ap.add_argument("--height", type=int, default=260)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--json", help="write the result here")
+    args = ap.parse_args(argv if argv is not None else [])
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    run = Path(args.run) if args.run else None
+    cfg = _config(Path(args.repo).resolve(), args.override, run)
+    field, renderer = _field_and_renderer(cfg, run)
+    _guard_empty(field)
+    row = time_images(field, renderer, dict(cfg.scene.get("rig") or {}), args.images,
+                      args.width, args.height)
+    import eventrecon
+    row.update({"package": str(Path(eventrecon.__file__).parent), "run": args.run,
+                "model": cfg.model.get("_target_"), "width": cfg.model.get("width"),
+                "image_dtype": str(getattr(renderer, "image_dtype", None)),
+                "threads": args.threads})
+    log.info("%d×%d image: %.2f s (median of %s)%s  [%s]", args.width, args.height,
+             row["median_s"], row["seconds"],
+             "" if row["samples_per_px"] is None
+             else f", {row['samples_per_px']:.1f} field samples per pixel", row["package"])
+    if args.json:
+        Path(args.json).write_text(json.dumps(row, indent=2))
+
+
+if __name__ == "__main__":
+    import sys
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    logging.getLogger("eventrecon").setLevel(logging.WARNING)
+    main(sys.argv[1:])
