@@ -83,11 +83,12 @@ def _guard_empty(field: Any) -> None:
     field.forward = guarded
 
 
-def time_images(field: Any, renderer: Any, rig: dict, n: int, width: int, height: int
-                ) -> dict[str, Any]:
+def time_images(field: Any, renderer: Any, rig: dict, n: int, width: int, height: int,
+                warmup: int = 1) -> dict[str, Any]:
     """Seconds per ``width``×``height`` image (view ``i mod 3`` of a three-camera ring at
     the scene's radius, elevation, field of view and target; time ``(i + 0.5)/n``; rays
-    computed before the clock starts) and field samples per pixel where counted."""
+    computed before the clock starts) and field samples per pixel where counted, after
+    ``warmup`` untimed images (which load compiled kernels and build oneDNN's)."""
     from eventrecon.render.cameras import ring_rig
     cams = ring_rig(3, width, height, radius=float(rig.get("radius", 2.5)),
                     elevation_deg=float(rig.get("elevation_deg", 15.0)),
@@ -98,6 +99,8 @@ def time_images(field: Any, renderer: Any, rig: dict, n: int, width: int, height
     field.eval()
     times, per_px = [], []
     with torch.no_grad():
+        for i in range(warmup):
+            renderer.render_image(field, cams, i % 3, 0.5)
         for i in range(n):
             if hasattr(renderer, "field_inputs"):
                 renderer.field_inputs = 0
@@ -120,6 +123,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--run", help="a finished run's folder: its field and grid")
     ap.add_argument("--override", nargs="*", default=[], help="Hydra overrides")
     ap.add_argument("--images", type=int, default=3)
+    ap.add_argument("--warmup", type=int, default=1, help="untimed images first")
     ap.add_argument("--width", type=int, default=346)
     ap.add_argument("--height", type=int, default=260)
     ap.add_argument("--threads", type=int, default=2)
@@ -132,7 +136,7 @@ def main(argv: list[str] | None = None) -> None:
     field, renderer = _field_and_renderer(cfg, run)
     _guard_empty(field)
     row = time_images(field, renderer, dict(cfg.scene.get("rig") or {}), args.images,
-                      args.width, args.height)
+                      args.width, args.height, args.warmup)
     import eventrecon
     row.update({"package": str(Path(eventrecon.__file__).parent), "run": args.run,
                 "model": cfg.model.get("_target_"), "width": cfg.model.get("width"),

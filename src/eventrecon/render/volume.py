@@ -241,9 +241,7 @@ class Renderer(nn.Module):
 
     def _occupied(self, o: Tensor, d: Tensor, t: Tensor, s: Tensor) -> Tensor:
         """``[n, K]`` bool: samples in occupied cells of the grid."""
-        pts = o[:, None, :] + s[..., None] * d[:, None, :]
-        n, k = s.shape
-        return self.occupancy.occupied(pts, t[:, None, :].expand(n, k, 1))
+        return self.occupancy.occupied_rays(o, d, t, s)
 
     def _march(self, field: Field, o: Tensor, d: Tensor, t: Tensor, s: Tensor,
                far: Tensor) -> tuple[Tensor, Tensor]:
