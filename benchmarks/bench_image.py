@@ -8,16 +8,20 @@
 
 Builds the field and the renderer of ``python train.py``'s configuration (``--override``
 adds Hydra overrides) from the ``conf/`` of ``--repo`` (default: this checkout) with
-whichever ``eventrecon`` Python imports, and renders ``--images`` full images of one
-camera of the scene's ring rig (``scene.rig``, at ``--width``×``--height``) at times
-``(i + 0.5)/n``, under the image autocast the run would use (bf16 on a CPU with native
-bf16 at HEAD; the code of issue 12's filing commit renders in fp32). Logs the median
-seconds per image and the field samples per pixel where the renderer counts them.
+whichever ``eventrecon`` Python imports, and renders ``--images`` full images, image ``i``
+from view ``i mod 3`` of a three-camera ring at the scene's rig (``scene.rig``: radius,
+elevation, field of view, target; ``--width``×``--height``) at time ``(i + 0.5)/n``,
+after ``--warmup`` untimed ones, under the image autocast the run would use (bf16 on a
+CPU with native bf16 at HEAD; the code of issue 12's filing commit renders in fp32). Logs
+the median seconds per image and the field samples per pixel where the renderer counts
+them.
 
 Without ``--run`` the field is freshly initialised (seed 0): every ray is fog and an
 occupancy grid, where there is one, starts fully occupied, so nothing is skipped -- the
 worst case, and the case issue 12 measured (a 20-step run). With ``--run`` the field and
-the grid come from the run's last checkpoint (this checkout's code only).
+the grid come from the run's last checkpoint of its first segment (``seg0``), with the
+run's own config and data properties (this checkout's code only; ``--override`` and
+``--repo`` do not apply).
 
 The code of older commits builds its field and renderer through ``eventrecon.runner``
 instead of ``eventrecon.build``; both are handled here. That code also fails on a chunk
@@ -54,19 +58,20 @@ def _config(repo: Path, overrides: list[str], run: Path | None) -> DictConfig:
 
 
 def _field_and_renderer(cfg: DictConfig, run: Path | None) -> tuple[Any, Any]:
-    """Field and renderer of ``cfg``, by the imported code's own builders."""
+    """Field and renderer of ``cfg``, by the imported code's own builders (a run's: its
+    ``seg0`` checkpoint, with the cylinder of its data)."""
+    if run is not None:
+        from eventrecon import build
+        props = build.scene_properties(cfg, build.load_dataset(cfg))
+        return build.load_segment(cfg, props, run / "seg0")
     props = SimpleNamespace(cylinder=dict(cfg.scene.cylinder))
     if "render" in cfg:                    # this layout: a render group, eventrecon.build
         from eventrecon import build
         from eventrecon.precision import run_precision
-        if run is not None:
-            return build.load_segment(cfg, props, run / "seg0")
         field = build.build_field(cfg.model)
         renderer = build.build_renderer(cfg.render, props, run_precision(cfg))
         field.set_scene_box(*renderer.cylinder.box())
         return field, renderer
-    if run is not None:
-        raise SystemExit("--run needs this checkout's code")
     # the older layout, e.g. issue 12's filing commit
     from eventrecon import runner
     return runner.build_field(cfg.model), runner.build_renderer(cfg, props)
@@ -129,6 +134,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--json", help="write the result here")
     args = ap.parse_args(argv if argv is not None else [])
+    if args.images < 1 or args.warmup < 0:
+        ap.error("--images must be at least 1 and --warmup at least 0")
+    if args.run and (args.override or args.repo != ap.get_default("repo")):
+        ap.error("--run renders with the run's own config: --override and --repo do not apply")
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     run = Path(args.run) if args.run else None
@@ -139,7 +148,8 @@ def main(argv: list[str] | None = None) -> None:
                       args.width, args.height, args.warmup)
     import eventrecon
     row.update({"package": str(Path(eventrecon.__file__).parent), "run": args.run,
-                "model": cfg.model.get("_target_"), "width": cfg.model.get("width"),
+                "model": cfg.model.get("_target_"), "model_width": cfg.model.get("width"),
+                "image": [args.width, args.height], "warmup": args.warmup,
                 "image_dtype": str(getattr(renderer, "image_dtype", None)),
                 "threads": args.threads})
     log.info("%d×%d image: %.2f s (median of %s)%s  [%s]", args.width, args.height,

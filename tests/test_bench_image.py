@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import torch
 
 from benchmarks import bench_image
@@ -12,21 +13,24 @@ from eventrecon.render.cameras import ring_rig
 REPO = Path(__file__).resolve().parents[1]
 
 
-def test_a_fresh_field_is_asked_every_coarse_sample_of_every_ray_that_meets_the_cylinder():
-    """An untrained field with a fresh (fully occupied) grid: each ray that meets the
-    clipping cylinder sends its 32 coarse samples to the field and at most its 32 fine
-    ones, a ray that misses sends none; the image has the camera's size."""
-    cfg = bench_image._config(REPO, ["scale=cpu"], None)
+@pytest.mark.parametrize("n_fine", [32, 0])
+def test_a_fresh_field_is_asked_every_sample_of_every_ray_that_meets_the_cylinder(n_fine):
+    """An untrained field (seed 0) with a fresh, fully occupied grid: each ray that meets
+    the clipping cylinder sends all its coarse and fine samples to the field (none of its
+    rays is opaque enough to stop early), a ray that misses sends none; so the samples
+    per pixel are ``(n_coarse + n_fine)`` times the share of rays that hit."""
+    torch.manual_seed(0)
+    cfg = bench_image._config(REPO, ["scale=cpu", f"render.n_fine={n_fine}"], None)
     field, renderer = bench_image._field_and_renderer(cfg, None)
     rig = dict(cfg.scene.rig)
-    row = bench_image.time_images(field, renderer, rig, 1, 24, 18)
+    row = bench_image.time_images(field, renderer, rig, 1, 24, 18, warmup=0)
     cams = ring_rig(3, 24, 18, radius=rig["radius"], elevation_deg=rig["elevation_deg"],
                     fov_deg=rig["fov_deg"], target=tuple(rig["target"]))
     o, d = cams.image_rays(0)
     hit = renderer.cylinder.ray_interval(o, d)[2].float().mean().item()
     assert 0.2 < hit < 1.0                           # some rays miss, most hit
-    n_c, n_f = renderer.n_coarse, renderer.n_fine
-    assert n_c * hit - 1e-9 <= row["samples_per_px"] <= (n_c + n_f) * hit + 1e-9
+    assert renderer.n_fine == n_fine
+    assert row["samples_per_px"] == pytest.approx((renderer.n_coarse + n_fine) * hit)
     assert len(row["seconds"]) == 1 and row["median_s"] > 0
 
 
