@@ -36,12 +36,29 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.sim.jit import AVAILABLE, njit_borrowing
+try:
+    import numba
+except ImportError:                              # pragma: no cover - numba is a dependency
+    numba = None
 
-__all__ = ["lookup_rays", "supported"]
+__all__ = ["AVAILABLE", "lookup_rays", "supported"]
+
+#: Whether numba could be imported (else :func:`lookup_rays` declines).
+AVAILABLE = numba is not None
 
 
-@njit_borrowing
+def _compiled(fn: Any) -> Any:
+    """``fn`` compiled with the options of the simulator's loops
+    (:func:`eventrecon.sim.jit.njit_borrowing`: cached beside this file, NumPy's error
+    model, no GIL, no reference counting). That module is not imported here: the
+    simulator imports the renderer's cameras, and subpackages must not import one
+    another in a cycle (``tests/test_structure.py``)."""
+    if numba is None:                            # pragma: no cover
+        return fn
+    return numba.njit(cache=True, error_model="numpy", nogil=True, _nrt=False)(fn)
+
+
+@_compiled
 def _cells(o: Any, d: Any, tb: Any, s: Any, lo: Any, span: Any, scale: Any, g: int,
            cell: Any) -> None:
     """``cell [n, K]``: the flat cell of sample ``s[r, j]`` of ray ``r``, ``-1`` outside
@@ -68,7 +85,7 @@ def _cells(o: Any, d: Any, tb: Any, s: Any, lo: Any, span: Any, scale: Any, g: i
             cr[m] = ((first + i) * g + j) * g + k if inside else -1
 
 
-@njit_borrowing
+@_compiled
 def _gather(cell: Any, occ: Any, out: Any) -> None:
     """``out[m] = occ[cell[m]]`` (flat), ``False`` where ``cell[m] < 0``."""
     for m in range(cell.shape[0]):
