@@ -14,7 +14,7 @@ For rays ``o, d [n, 3]`` at times ``t [n]`` with samples ``s [n, K]``, a grid
 (:meth:`~eventrecon.render.occupancy.OccupancyGrid.cell_index` on the points, then a
 gather). In PyTorch that is about twenty passes over ``[n, K, 3]`` tensors: 12.4 ms for
 one chunk of an evaluation image (8192 rays × 32 samples, 2 threads), two per chunk,
-~8 % of a trained field's 346×260 image (docs/results/history.md, "Session 51"). Here
+~11 % of a trained field's 346×260 image (docs/results/history.md, "Session 51"). Here
 the points are formed ray by ray and never stored: the cells of a ray's samples in one
 loop that LLVM vectorises across the samples (no branch, no gather), then the gather
 (0.8 ms for that chunk).
@@ -52,7 +52,9 @@ def _compiled(fn: Any) -> Any:
     (:func:`eventrecon.sim.jit.njit_borrowing`: cached beside this file, NumPy's error
     model, no GIL, no reference counting). That module is not imported here: the
     simulator imports the renderer's cameras, and subpackages must not import one
-    another in a cycle (``tests/test_structure.py``)."""
+    another in a cycle (``tests/test_structure.py``). Nor does its stale-cache check
+    cover this file: numba keys the cache on this file alone, so these loops must stay
+    self-contained (no compiled helper from another module)."""
     if numba is None:                            # pragma: no cover
         return fn
     return numba.njit(cache=True, error_model="numpy", nogil=True, _nrt=False)(fn)
