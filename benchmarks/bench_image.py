@@ -88,12 +88,20 @@ def _guard_empty(field: Any) -> None:
     field.forward = guarded
 
 
+def _sync(device: torch.device) -> None:
+    """Wait for a CUDA device before reading the clock (nothing on the CPU)."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
 def time_images(field: Any, renderer: Any, rig: dict, n: int, width: int, height: int,
                 warmup: int = 1) -> dict[str, Any]:
     """Seconds per ``width``×``height`` image (view ``i mod 3`` of a three-camera ring at
     the scene's radius, elevation, field of view and target; time ``(i + 0.5)/n``; rays
     computed before the clock starts) and field samples per pixel where counted, after
-    ``warmup`` untimed images (which load compiled kernels and build oneDNN's)."""
+    ``warmup`` untimed images (which load compiled kernels and build oneDNN's). Also
+    ``bench_zoo``'s render timing (:func:`benchmarks.zoo_run.time_render`); a CUDA device
+    is synchronised around each image."""
     from eventrecon.render.cameras import ring_rig
     cams = ring_rig(3, width, height, radius=float(rig.get("radius", 2.5)),
                     elevation_deg=float(rig.get("elevation_deg", 15.0)),
@@ -102,6 +110,7 @@ def time_images(field: Any, renderer: Any, rig: dict, n: int, width: int, height
     for v in range(3):
         cams.image_rays(v)
     field.eval()
+    device = next(iter(field.parameters())).device
     times, per_px = [], []
     with torch.no_grad():
         for i in range(warmup):
@@ -109,8 +118,10 @@ def time_images(field: Any, renderer: Any, rig: dict, n: int, width: int, height
         for i in range(n):
             if hasattr(renderer, "field_inputs"):
                 renderer.field_inputs = 0
+            _sync(device)
             t0 = time.perf_counter()
             renderer.render_image(field, cams, i % 3, (i + 0.5) / n)
+            _sync(device)
             times.append(time.perf_counter() - t0)
             if hasattr(renderer, "field_inputs"):
                 per_px.append(renderer.field_inputs / (width * height))

@@ -27,10 +27,10 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig, OmegaConf, open_dict
 from torch import Tensor
 
+from benchmarks.bench_image import time_images
 from eventrecon.callbacks import HeldOutMonitor
 from eventrecon.losses import total_loss
 from eventrecon.module import EventNeRFModule, adamw_fused, step_generator
-from eventrecon.render.cameras import ring_rig
 
 log = logging.getLogger("benchmarks.zoo")
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
@@ -174,34 +174,17 @@ class SampleCounter:
         return calls
 
 
-@torch.no_grad()
 def time_render(module: EventNeRFModule, cfg: DictConfig, n_images: int, width: int = 346,
                 height: int = 260) -> dict[str, float]:
-    """Median seconds of ``renderer.render_image`` of a ``width``×``height`` image (the
-    scene's ring rig at that size, view ``i`` at time ``(i + 0.5) / n``; rays computed
-    before the clock starts) and the field samples per pixel it took."""
-    rig = dict(cfg.scene.get("rig") or {})
-    cams = ring_rig(n_images, width, height, radius=float(rig.get("radius", 2.5)),
-                    elevation_deg=float(rig.get("elevation_deg", 15.0)),
-                    fov_deg=float(rig.get("fov_deg", 40.0)),
-                    target=tuple(rig.get("target", (0.0, -0.25, 0.0))))
-    field, renderer = module.field, module.renderer
-    field.eval()
-    times, per_px = [], []
+    """Median seconds of ``renderer.render_image`` of a ``width``×``height`` image and the
+    field samples per pixel it took (:func:`benchmarks.bench_image.time_images`: the
+    scene's rig, no warm-up image); the field is left in training mode."""
     try:
-        for v in range(n_images):
-            cams.image_rays(v)
-            sync(module.device)
-            renderer.field_inputs = 0
-            t0 = time.perf_counter()
-            renderer.render_image(field, cams, v, (v + 0.5) / n_images)
-            sync(module.device)
-            times.append(time.perf_counter() - t0)
-            per_px.append(renderer.field_inputs / (width * height))
+        row = time_images(module.field, module.renderer, dict(cfg.scene.get("rig") or {}),
+                          n_images, width, height, warmup=0)
     finally:
-        field.train()
-    return {"render_s": statistics.median(times), "render_samples_per_px":
-            statistics.median(per_px)}
+        module.field.train()
+    return {"render_s": row["median_s"], "render_samples_per_px": row["samples_per_px"]}
 
 
 def _update_grid(module: EventNeRFModule, seed: int, step: int) -> float:
