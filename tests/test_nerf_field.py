@@ -190,11 +190,13 @@ def _explicit_forward(f: NeRFField, xyz: torch.Tensor, t: torch.Tensor,
 
 
 @pytest.mark.parametrize("autocast", [None, torch.bfloat16])
-@pytest.mark.parametrize("step", [None, 1200])
+@pytest.mark.parametrize("step", [None, 0, 300, 1200, 3990])
 def test_grouped_features_are_the_authors_encoding_permuted_and_give_its_field(step,
                                                                               autocast) -> None:
-    """``features`` holds ``encode``'s values in ``feature_order`` (bands all on and
-    half-way through annealing; in fp32, under bf16 autocast, differentiable in ``xyz``,
+    """``features`` holds ``encode``'s values in ``feature_order`` (bands all on, and in
+    annealing: all off; the first band of each encoding partly on, two runs of columns
+    apart; one band on, one half, the rest off; every band but a partial last one on);
+    in fp32, under bf16 autocast, differentiable in ``xyz``,
     and with reduced-precision fp32 products switched on, where the angles come from a
     gather instead of a product); the forward pass through the gathered weight columns
     is the authors'-layout network written out (``encode`` through the stored weights,
@@ -205,10 +207,14 @@ def test_grouped_features_are_the_authors_encoding_permuted_and_give_its_field(s
                   colour_width=16, anneal_steps=0 if step is None else 4000)
     if step is not None:
         f.set_progress(step)
-        assert ((f.pos_enc.window > 0) & (f.pos_enc.window < 1)).any()   # a band half on
+        on = [(e.window > 0).sum().item() for e in (f.pos_enc, f.time_enc)]
+        assert on == {0: [0, 0], 300: [1, 1], 1200: [2, 1], 3990: [5, 3]}[step]
+        assert step == 0 or ((f.pos_enc.window > 0) & (f.pos_enc.window < 1)).any()
     xyz, t = torch.rand(301, 3) * 4 - 2, torch.rand(301, 1)
     enc = f.encode(xyz, t)
     assert sorted(f.feature_order.tolist()) == list(range(enc.shape[1]))
+    if step == 0:                                            # nothing but the raw inputs
+        assert torch.equal(f.features(xyz, t)[:, 4:], torch.zeros(301, 2 * 5 * 3 + 2 * 3))
     assert torch.equal(f.features(xyz, t), enc[:, f.feature_order])
     with torch.autocast("cpu", dtype=torch.bfloat16):      # autocast's cast, made ahead
         assert torch.equal(f.features(xyz, t), enc[:, f.feature_order].bfloat16())

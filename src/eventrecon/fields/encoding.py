@@ -85,13 +85,24 @@ class PositionalEncoding(nn.Module):
 
     @staticmethod
     def _window_loaded(module: PositionalEncoding, _keys: Any) -> None:
-        """Whether every band is fully on (then the window is not multiplied in)."""
-        module._all_on = bool((module.window == 1.0).all())
+        """Refresh :attr:`all_on` and :attr:`weights` from the window buffer."""
+        module._set_weights(module.window.tolist())
+
+    def _set_weights(self, weights: Sequence[float]) -> None:
+        self._weights = tuple(weights)
+        self._all_on = all(w == 1.0 for w in self._weights)
 
     @property
     def all_on(self) -> bool:
         """Whether every band is fully on (the window is then not multiplied in)."""
         return self._all_on
+
+    @property
+    def weights(self) -> tuple[float, ...]:
+        """The window ``w_0 … w_{L−1}`` as Python floats, the buffer's (float32) values:
+        which bands are off, on or partly on, known without reading the buffer (no device
+        sync on a GPU)."""
+        return self._weights
 
     @property
     def out_dim(self) -> int:
@@ -100,9 +111,9 @@ class PositionalEncoding(nn.Module):
 
     def set_progress(self, step: float) -> None:
         """Set the band window for training step ``step``."""
-        window = band_window(self.n_bands, step, self.anneal_steps)
-        self.window.copy_(torch.tensor(window))
-        self._all_on = all(w == 1.0 for w in window)
+        window = torch.tensor(band_window(self.n_bands, step, self.anneal_steps))  # float32
+        self.window.copy_(window)
+        self._set_weights(window.tolist())       # from the host copy: no device sync
 
     def forward(self, x: Tensor) -> Tensor:
         """Encode ``x [N, D]`` into ``[N, D (1 + 2L)]`` (layout in the module docstring)."""
@@ -167,35 +178,68 @@ def _angles(x: Tensor, freqs: Tensor) -> Tensor:
     return torch.index_select(x, 1, freqs.argmax(0)) * freqs.amax(0).to(x.dtype)
 
 
-def encode_grouped(x: Tensor, freqs: Tensor, window: Tensor | None = None,
+def encode_grouped(x: Tensor, freqs: Tensor, window: Sequence[float] | None = None,
                    dtype: torch.dtype | None = None) -> Tensor:
     """``[x, w·sin(A), w·cos(A)]`` with ``A = x @ freqs`` (:func:`grouped_layout`).
 
-    ``x [N, ΣD]``, ``freqs [ΣD, F]``, ``window [F]`` (each column's band weight; ``None``:
-    all on) → ``[N, ΣD + 2F]`` in ``dtype`` (default ``x``'s; e.g. autocast's, so that
-    the first layer reads the features without a cast of its own: the same values as
+    ``x [N, ΣD]``, ``freqs [ΣD, F]``, ``window`` (``F`` floats: each column's band weight;
+    ``None``: all on) → ``[N, ΣD + 2F]`` in ``dtype`` (default ``x``'s; e.g. autocast's, so
+    that the first layer reads the features without a cast of its own: the same values as
     casting afterwards). ``A`` is exact in ``x``'s dtype whatever autocast is active
     (:func:`_angles`), so the values equal those of :class:`PositionalEncoding`, in other
     columns (a ``−0`` input may give ``+0`` angles on a CPU). Written as three contiguous
     blocks, at under half the time of the band-by-band layout, whose concatenation
     copies a few elements per row (16 384 rows of the NeRF's 102 features on 2 cores:
-    1.1 ms in bf16 against 2.6–2.8 ms, and 0.4 ms for the cast)."""
-    angles = _angles(x, freqs)
+    1.1 ms in bf16 against 2.6–2.8 ms, and 0.4 ms for the cast).
+
+    Without gradients, the columns of bands that are off (``w = 0``) are written as zeros
+    and their ``sin``, ``cos`` and angles are not computed (:func:`_active_runs`): early in
+    annealing most are off (a field 20 steps in, as issue 12 evaluated it, has 4 of the
+    NeRF's 49 columns on). The values are those of the product ``w·sin(A)`` but for the
+    sign of a zero (``+0`` where ``sin(A)·0`` is ``−0``) and a non-finite angle (``0``
+    where the product is NaN; the raw input column then holds the non-finite value)."""
     dtype = dtype or x.dtype
     if x.requires_grad and torch.is_grad_enabled():      # out= is not differentiable
+        angles = _angles(x, freqs)
         sin, cos = torch.sin(angles), torch.cos(angles)
         if window is not None:
-            sin, cos = sin * window, cos * window
+            w = torch.tensor(window, dtype=x.dtype, device=x.device)
+            sin, cos = sin * w, cos * w
         return torch.cat([x, sin, cos], dim=-1).to(dtype)
-    d, n = x.shape[1], angles.shape[1]
+    d, n = x.shape[1], freqs.shape[1]
     out = x.new_empty(x.shape[0], d + 2 * n, dtype=dtype)
     out[:, :d] = x
-    for fn, cols in ((torch.sin, out[:, d:d + n]), (torch.cos, out[:, d + n:])):
-        if window is None:
-            fn(angles, out=cols)
-        else:
-            torch.mul(fn(angles), window, out=cols)
+    runs = [(0, n)] if window is None else _active_runs(window)
+    if sum(b - a for a, b in runs) < n:
+        out[:, d:].zero_()
+    for a, b in runs:
+        angles = _angles(x, freqs if (a, b) == (0, n) else freqs[:, a:b])
+        scale = (None if window is None or all(v == 1.0 for v in window[a:b])
+                 else torch.tensor(window[a:b], dtype=x.dtype, device=x.device))
+        for fn, first in ((torch.sin, d), (torch.cos, d + n)):
+            cols = out[:, first + a:first + b]
+            if scale is None:
+                fn(angles, out=cols)
+            else:
+                torch.mul(fn(angles), scale, out=cols)
     return out
+
+
+def _active_runs(window: Sequence[float]) -> list[tuple[int, int]]:
+    """Maximal runs ``[a, b)`` of columns whose weight is not 0.
+
+    >>> _active_runs([1.0, 0.5, 0.0, 0.0, 1.0, 0.0])
+    [(0, 2), (4, 5)]
+    """
+    runs: list[tuple[int, int]] = []
+    for j, w in enumerate(window):
+        if w == 0.0:
+            continue
+        if runs and runs[-1][1] == j:
+            runs[-1] = (runs[-1][0], j + 1)
+        else:
+            runs.append((j, j + 1))
+    return runs
 
 
 class BandAnnealing(pl.Callback):
