@@ -18,7 +18,10 @@ them.
 
 Without ``--run`` the field is freshly initialised (seed 0): every ray is fog and an
 occupancy grid, where there is one, starts fully occupied, so nothing is skipped -- the
-worst case, and the case issue 12 measured (a 20-step run). With ``--run`` the field and
+worst case, and the case issue 12 measured (a 20-step run). ``--step N`` sets such a
+field's training progress to step ``N`` (the NeRF's band-annealing window; ``--step 20``:
+the issue's run, whose first bands are partly on); without it the field is at step 0,
+where every band is off. With ``--run`` the field and
 the grid come from the run's last checkpoint of its first segment (``seg0``), with the
 run's own config and data properties (this checkout's code only; ``--override`` and
 ``--repo`` do not apply).
@@ -138,6 +141,7 @@ def main(argv: list[str] | None = None) -> None:
                     help="checkout whose conf/ gives the default job (default: this one)")
     ap.add_argument("--run", help="a finished run's folder: its field and grid")
     ap.add_argument("--override", nargs="*", default=[], help="Hydra overrides")
+    ap.add_argument("--step", type=int, help="a fresh field's training step (band window)")
     ap.add_argument("--images", type=int, default=3)
     ap.add_argument("--warmup", type=int, default=1, help="untimed images first")
     ap.add_argument("--width", type=int, default=346)
@@ -147,20 +151,28 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv if argv is not None else [])
     if args.images < 1 or args.warmup < 0:
         ap.error("--images must be at least 1 and --warmup at least 0")
-    if args.run and (args.override or args.repo != ap.get_default("repo")):
-        ap.error("--run renders with the run's own config: --override and --repo do not apply")
+    if args.run and (args.override or args.repo != ap.get_default("repo")
+                     or args.step is not None):
+        ap.error("--run renders the run's own field and config: --override, --repo and "
+                 "--step do not apply")
+    if args.step is not None and args.step < 0:
+        ap.error("--step must be at least 0")
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     run = Path(args.run) if args.run else None
     cfg = _config(Path(args.repo).resolve(), args.override, run)
     field, renderer = _field_and_renderer(cfg, run)
+    if args.step is not None:
+        if not hasattr(field, "set_progress"):
+            ap.error(f"--step: {type(field).__name__} has no training progress to set")
+        field.set_progress(args.step)
     _guard_empty(field)
     row = time_images(field, renderer, dict(cfg.scene.get("rig") or {}), args.images,
                       args.width, args.height, args.warmup)
     import eventrecon
     row.update({"package": str(Path(eventrecon.__file__).parent), "run": args.run,
                 "model": cfg.model.get("_target_"), "model_width": cfg.model.get("width"),
-                "image": [args.width, args.height], "warmup": args.warmup,
+                "image": [args.width, args.height], "warmup": args.warmup, "step": args.step,
                 "image_dtype": str(getattr(renderer, "image_dtype", None)),
                 "threads": args.threads})
     log.info("%d×%d image: %.2f s (median of %s)%s  [%s]", args.width, args.height,

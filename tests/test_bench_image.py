@@ -51,3 +51,31 @@ def test_a_call_with_no_rows_is_answered_without_the_field():
     xyz = torch.arange(6.0).reshape(2, 3)
     sigma, rgb = f.forward(xyz, torch.zeros(2, 1))
     assert calls == [2] and sigma.tolist() == [3.0, 12.0] and torch.equal(rgb, xyz * 2)
+
+
+def test_step_sets_a_fresh_fields_band_window_and_is_refused_where_it_cannot_apply(
+        tmp_path, monkeypatch):
+    """``--step 20`` renders the default job's fresh NeRF with the band window of step 20
+    (of the paper's 4000-step annealing: the first position and time bands partly on,
+    the rest off), as issue 12's 20-step run had it; ``--step`` with ``--run``, or a
+    negative one, stops with a usage error before any work."""
+    from eventrecon.fields.encoding import band_window
+    seen = {}
+    real = bench_image.time_images
+
+    def spy(field, *args, **kwargs):
+        seen["windows"] = [field.pos_enc.window.tolist(), field.time_enc.window.tolist()]
+        return real(field, *args, **kwargs)
+
+    monkeypatch.setattr(bench_image, "time_images", spy)
+    out = tmp_path / "row.json"
+    bench_image.main(["--step", "20", "--images", "1", "--warmup", "0", "--width", "16",
+                      "--height", "12", "--json", str(out)])
+    assert seen["windows"] == [pytest.approx(band_window(14, 20, 4000)),
+                               pytest.approx(band_window(7, 20, 4000))]
+    assert seen["windows"][0][0] > 0 and seen["windows"][0][1] == 0 == seen["windows"][1][1]
+    assert '"step": 20' in out.read_text()
+    for argv in (["--run", str(tmp_path), "--step", "3"], ["--step", "-1"]):
+        with pytest.raises(SystemExit) as exc:
+            bench_image.main(argv)
+        assert exc.value.code == 2
