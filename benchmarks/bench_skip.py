@@ -23,7 +23,10 @@ Samples per ray are the field's inputs per rendered ray (a ray's three renders c
 three), split into the coarse level (the same batches rendered with ``n_fine = 0``: the
 coarse draws come first, so they are the same) and the fine level. "Opaque" is the share
 of rendered rays whose opacity exceeds 0.5: their fine samples sit on the subject, in
-occupied cells, so they reach the field. Session 49 used it to find that the grid's
+occupied cells, so they reach the field. "Faint" hits are rays that meet the cylinder
+with a coarse opacity below 1e-4 (:func:`fine_by_coarse_opacity`): the table gives their
+share of the hits, their share of the fine level's field inputs, and the fine inputs per
+faint and per other hit. Session 49 used it to find that the grid's
 dilation in time, not fog above the threshold, keeps most samples of a trained
 `make train` run (``docs/results/history.md``).
 """
@@ -38,6 +41,7 @@ from pathlib import Path
 
 import torch
 from omegaconf import OmegaConf
+from torch import Tensor
 
 from eventrecon.build import load_dataset, load_segment, scene_properties
 from eventrecon.data.batcher import RayBatcher
@@ -45,7 +49,7 @@ from eventrecon.data.selection import heldout_split, training_split
 from eventrecon.evaluate import render_heldout, score_images
 from eventrecon.fields.base import Field
 from eventrecon.render.occupancy import OccupancyGrid
-from eventrecon.render.volume import Renderer
+from eventrecon.render.volume import _INSIDE_TOL, Renderer
 from eventrecon.segments import run_segments
 
 log = logging.getLogger("benchmarks.skip")
@@ -95,6 +99,54 @@ def ray_samples(renderer: Renderer, field: Field, batches: Sequence[dict]
     return counts[0], counts[1] - counts[0], opaque / max(rays, 1)
 
 
+def fine_by_coarse_opacity(renderer: Renderer, field: Field, batches: Sequence[dict],
+                           cut: float = 1e-4) -> dict[str, float]:
+    """Where the fine level's field inputs go, by the coarse opacity of their ray.
+
+    Renders ``batches`` as :func:`ray_samples` does (both levels) and counts, per ray that
+    meets the cylinder, the fine level's field inputs: all ``n_fine`` samples without a
+    grid, else those in occupied cells, inside the cylinder and in front of the coarse
+    stop (the renderer's last field query of each render, watched). Returns, over those
+    rays, ``faint`` (the share whose coarse opacity is below ``cut``), ``faint_fine``
+    (their share of the fine inputs), and ``fine_faint`` / ``fine_other`` (fine inputs
+    per faint / other ray). A faint ray's fine samples are spread by the coarse weights
+    plus the sampler's ``ε`` over where the coarse level found next to nothing."""
+    counts: list[Tensor] = []
+    query = renderer._query
+
+    def watched(f: Field, o: Tensor, d: Tensor, t: Tensor, s: Tensor,
+                keep: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        if keep is None:
+            counts.append(torch.full(s.shape[:1], s.shape[1]))
+        else:
+            pts = o[:, None, :] + s[..., None] * d[:, None, :]
+            inside = renderer.cylinder.inside(pts, renderer.clip_scale, tol=_INSIDE_TOL)
+            counts.append((keep & inside).sum(-1))
+        return query(f, o, d, t, s, keep)
+
+    opacity, fine = [], []
+    renderer._query = watched
+    try:
+        for i, batch in enumerate(batches):
+            o, d = batch["rays_o"].repeat(3, 1), batch["rays_d"].repeat(3, 1)
+            t = torch.cat([batch["t0"], batch["t1"], batch["t_ref"]], 0)
+            counts.clear()
+            with torch.enable_grad(), renderer.image_autocast(o.device):
+                out = renderer(field, o, d, t, batch["bg"].repeat(3, 1), perturb=True,
+                               gen=torch.Generator().manual_seed(i), copies=3)
+            hit = renderer.cylinder.ray_interval(o, d)[2]
+            opacity.append(out[0]["opacity"].detach()[hit])
+            fine.append(counts[-1].float())
+    finally:
+        del renderer._query                       # the class's method again
+    op, kf = torch.cat(opacity), torch.cat(fine)
+    faint = op < cut
+    return {"faint": float(faint.float().mean()),
+            "faint_fine": float(kf[faint].sum() / kf.sum().clamp(min=1)),
+            "fine_faint": float(kf[faint].mean()) if faint.any() else 0.0,
+            "fine_other": float(kf[~faint].mean()) if (~faint).any() else 0.0}
+
+
 def rebuilt_grid(renderer: Renderer, field: Field, resolution: int, time_bins: int,
                  dilation: tuple[int, int], threshold: float, passes: int) -> OccupancyGrid:
     """A grid of another shape over the renderer's box, filled from ``field`` by
@@ -130,18 +182,21 @@ def survey(run_dir: Path, thresholds: Sequence[float], grids: Sequence[str], n_b
     def row(name: str, grid: OccupancyGrid | None) -> dict:
         renderer.occupancy = grid
         coarse, fine, opaque = ray_samples(renderer, field, batches)
+        where = fine_by_coarse_opacity(renderer, field, batches)
         t0 = time.perf_counter()
         img = render_heldout([(field, renderer)], segments[:1], held, [0], frames)
         sec = time.perf_counter() - t0
         score = score_images([img[f, 0] for f in frames], [held.frames[f, 0] for f in frames],
                              lpips=False)
-        out = {"grid": name, "coarse": coarse, "fine": fine, "opaque": opaque,
+        out = {"grid": name, "coarse": coarse, "fine": fine, "opaque": opaque, **where,
                "psnr": score["psnr"],
                "occupied": grid.occupied_fraction() if grid is not None else 1.0,
                "render_s": sec}
         log.info("%s %s: %.2f + %.2f samples per ray (%.3f of the rays opaque), occupied "
-                 "%.3f, PSNR %.3f (%.1f s)", run_dir.name, name, coarse, fine, opaque,
-                 out["occupied"], out["psnr"], sec)
+                 "%.3f, PSNR %.3f (%.1f s); faint rays %.3f of the hits, %.3f of the fine "
+                 "inputs (%.1f fine per faint ray, %.1f per other)", run_dir.name, name,
+                 coarse, fine, opaque, out["occupied"], out["psnr"], sec, where["faint"],
+                 where["faint_fine"], where["fine_faint"], where["fine_other"])
         return out
 
     def shape(g: OccupancyGrid) -> str:
@@ -168,12 +223,14 @@ def survey(run_dir: Path, thresholds: Sequence[float], grids: Sequence[str], n_b
 def markdown(rows: dict[str, list[dict]]) -> str:
     """One line per run and grid setting."""
     lines = ["| run | grid | samples per ray: coarse + fine = all | opaque rays | occupied "
-             "| held-out PSNR | held-out render (s) |", "|---|---|---|---|---|---|---|"]
+             "| faint hits: share; of the fine inputs | fine per faint / other hit "
+             "| held-out PSNR | held-out render (s) |", "|---|---|---|---|---|---|---|---|---|"]
     for run, table in rows.items():
         for r in table:
             lines.append(f"| {run} | {r['grid']} | {r['coarse']:.2f} + {r['fine']:.2f} = "
                          f"{r['coarse'] + r['fine']:.2f} | {r['opaque']:.3f} | "
-                         f"{r['occupied']:.3f} | "
+                         f"{r['occupied']:.3f} | {r['faint']:.3f}; {r['faint_fine']:.3f} | "
+                         f"{r['fine_faint']:.1f} / {r['fine_other']:.1f} | "
                          f"{r['psnr']:.3f} | {r['render_s']:.1f} |")
     return "\n".join(lines) + "\n"
 

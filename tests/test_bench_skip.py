@@ -6,7 +6,7 @@ import pytest
 import torch
 from test_occupancy import CYL, Blob, _rays
 
-from benchmarks.bench_skip import parse_grid, ray_samples, rebuilt_grid
+from benchmarks.bench_skip import fine_by_coarse_opacity, parse_grid, ray_samples, rebuilt_grid
 from eventrecon.render import volume
 from eventrecon.render.volume import Renderer
 
@@ -68,3 +68,22 @@ def test_a_grid_is_named_as_cells_bins_and_dilation():
     assert parse_grid("48x16:0,0") == (48, 16, (0, 0))
     with pytest.raises(SystemExit, match="RxB:s,b"):
         parse_grid("48x16")
+
+
+def test_fine_inputs_by_coarse_opacity_add_up_to_the_fine_count():
+    """The fine inputs counted per ray add up to :func:`ray_samples`' fine count (the
+    renderer's own counter), with a grid that skips most of the box; without a grid each
+    ray that meets the cylinder takes all ``n_fine``, faint or not."""
+    field, batches = Blob(), _batches(3, 60)
+    r = Renderer(n_coarse=32, n_fine=32, skip="grid", **CYL)
+    r.occupancy = rebuilt_grid(r, field, 24, 16, (1, 0), 0.01, passes=3)
+    _, fine, _ = ray_samples(r, field, batches)
+    where = fine_by_coarse_opacity(r, field, batches)
+    hits = sum(int(r.cylinder.ray_interval(b["rays_o"], b["rays_d"])[2].sum()) for b in batches)
+    total = (where["faint"] * where["fine_faint"] + (1 - where["faint"]) * where["fine_other"])
+    assert total * 3 * hits / (3 * 60 * len(batches)) == pytest.approx(fine, rel=1e-6)
+    assert 0 < where["faint"] < 1 and where["fine_faint"] < where["fine_other"] <= 32
+    assert "_query" not in vars(r)                     # the renderer's own method again
+    plain = Renderer(n_coarse=32, n_fine=24, **CYL)
+    where = fine_by_coarse_opacity(plain, field, batches)
+    assert where["fine_faint"] == where["fine_other"] == 24
