@@ -20,8 +20,9 @@ Without ``--run`` the field is freshly initialised (seed 0): every ray is fog an
 occupancy grid, where there is one, starts fully occupied, so nothing is skipped -- the
 worst case, and the case issue 12 measured (a 20-step run). ``--step N`` sets such a
 field's training progress to step ``N`` (the NeRF's band-annealing window; ``--step 20``:
-the issue's run, whose first bands are partly on); without it the field is at step 0,
-where every band is off. With ``--run`` the field and
+the issue's 20-step command with today's code, whose first bands are partly on; the
+filing code annealed over a share of the run and had every band on); without it the
+field is at step 0, where every band is off. With ``--run`` the field and
 the grid come from the run's last checkpoint of its first segment (``seg0``), with the
 run's own config and data properties (this checkout's code only; ``--override`` and
 ``--repo`` do not apply).

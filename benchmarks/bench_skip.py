@@ -24,7 +24,7 @@ three), split into the coarse level (the same batches rendered with ``n_fine = 0
 coarse draws come first, so they are the same) and the fine level. "Opaque" is the share
 of rendered rays whose opacity exceeds 0.5: their fine samples sit on the subject, in
 occupied cells, so they reach the field. "Faint" hits are rays that meet the cylinder
-with a coarse opacity below 1e-4 (:func:`fine_by_coarse_opacity`): the table gives their
+with a coarse opacity below 1e-4 (:func:`ray_samples`): the table gives their
 share of the hits, their share of the fine level's field inputs, and the fine inputs per
 faint and per other hit. Session 49 used it to find that the grid's
 dilation in time, not fog above the threshold, keeps most samples of a trained
@@ -35,9 +35,11 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from unittest import mock
 
 import torch
 from omegaconf import OmegaConf
@@ -72,15 +74,41 @@ def parse_grid(text: str) -> tuple[int, int, tuple[int, int]]:
     return res, bins, (s, b)
 
 
-def ray_samples(renderer: Renderer, field: Field, batches: Sequence[dict]
-                ) -> tuple[float, float, float]:
-    """``(coarse, fine, opaque)``: field inputs per rendered ray over ``batches`` by level,
-    and the share of rendered rays whose final opacity exceeds 0.5. Each batch renders at
-    its ``t0, t1, t_ref`` (shared coarse samples, generator seeded by its index) with
-    gradients on, as in training: the coarse march then calls the field on every occupied
-    sample and applies its stops as masks, so the sum is the logged
-    ``train/samples_per_ray``."""
-    counts, opaque, rays = [], 0, 0
+def ray_samples(renderer: Renderer, field: Field, batches: Sequence[dict],
+                cut: float = 1e-4) -> dict[str, float]:
+    """Field inputs per rendered ray over ``batches``, by level, and where the fine
+    level's go.
+
+    Each batch renders at its ``t0, t1, t_ref`` (shared coarse samples, generator seeded
+    by its index) with gradients on, as in training: the coarse march then calls the field
+    on every occupied sample and applies its stops as masks, so ``coarse + fine`` is the
+    logged ``train/samples_per_ray``. The batches render twice, with ``n_fine = 0`` (the
+    coarse draws come first, so they are the same) and as configured.
+
+    Returns ``coarse``, ``fine`` (per rendered ray), ``opaque`` (the share of rendered
+    rays whose final opacity exceeds 0.5) and, over the rays that meet the cylinder, by
+    the coarse opacity of the ray (below ``cut``: *faint*): ``faint`` (their share),
+    ``faint_fine`` (their share of the fine level's inputs), ``fine_faint`` /
+    ``fine_other`` (fine inputs per faint / other ray); NaN without a fine level. The
+    fine inputs are counted per ray at the renderer's last field query of each render
+    (its fine level): all ``n_fine`` samples without a grid, else those in occupied cells,
+    inside the cylinder and in front of the coarse stop. A faint ray's fine samples are
+    spread by the coarse weights plus the sampler's ``ε`` where the coarse level found next
+    to nothing."""
+    counts: list[Tensor] = []
+    query = renderer._query
+
+    def watched(f: Field, o: Tensor, d: Tensor, t: Tensor, s: Tensor,
+                keep: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        if keep is None:                         # Renderer._query's count, per ray
+            counts.append(torch.full(s.shape[:1], s.shape[1], device=s.device))
+        else:
+            pts = o[:, None, :] + s[..., None] * d[:, None, :]
+            inside = renderer.cylinder.inside(pts, renderer.clip_scale, tol=_INSIDE_TOL)
+            counts.append((keep & inside).sum(-1))
+        return query(f, o, d, t, s, keep)
+
+    inputs, opacity, fine_in = [], [], []
     n_fine = renderer.n_fine
     try:
         for fine in (0, n_fine):
@@ -88,63 +116,31 @@ def ray_samples(renderer: Renderer, field: Field, batches: Sequence[dict]
             for i, batch in enumerate(batches):
                 o, d = batch["rays_o"].repeat(3, 1), batch["rays_d"].repeat(3, 1)
                 t = torch.cat([batch["t0"], batch["t1"], batch["t_ref"]], 0)
-                with torch.enable_grad(), renderer.image_autocast(o.device):
+                counts.clear()
+                with (torch.enable_grad(), renderer.image_autocast(o.device),
+                      mock.patch.object(renderer, "_query", watched)):
                     out = renderer(field, o, d, t, batch["bg"].repeat(3, 1), perturb=True,
                                    gen=torch.Generator().manual_seed(i), copies=3)
                 opaque += int((out[-1]["opacity"].detach() > 0.5).sum())
                 rays += o.shape[0]
-            counts.append(renderer.field_inputs / max(rays, 1))
+                if fine and counts:              # no hit: no query
+                    hit = renderer.cylinder.ray_interval(o, d)[2]
+                    opacity.append(out[0]["opacity"].detach()[hit])
+                    fine_in.append(counts[-1].float().cpu())
+            inputs.append(renderer.field_inputs / max(rays, 1))
     finally:
         renderer.n_fine = n_fine
-    return counts[0], counts[1] - counts[0], opaque / max(rays, 1)
-
-
-def fine_by_coarse_opacity(renderer: Renderer, field: Field, batches: Sequence[dict],
-                           cut: float = 1e-4) -> dict[str, float]:
-    """Where the fine level's field inputs go, by the coarse opacity of their ray.
-
-    Renders ``batches`` as :func:`ray_samples` does (both levels) and counts, per ray that
-    meets the cylinder, the fine level's field inputs: all ``n_fine`` samples without a
-    grid, else those in occupied cells, inside the cylinder and in front of the coarse
-    stop (the renderer's last field query of each render, watched). Returns, over those
-    rays, ``faint`` (the share whose coarse opacity is below ``cut``), ``faint_fine``
-    (their share of the fine inputs), and ``fine_faint`` / ``fine_other`` (fine inputs
-    per faint / other ray). A faint ray's fine samples are spread by the coarse weights
-    plus the sampler's ``ε`` over where the coarse level found next to nothing."""
-    counts: list[Tensor] = []
-    query = renderer._query
-
-    def watched(f: Field, o: Tensor, d: Tensor, t: Tensor, s: Tensor,
-                keep: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        if keep is None:
-            counts.append(torch.full(s.shape[:1], s.shape[1]))
-        else:
-            pts = o[:, None, :] + s[..., None] * d[:, None, :]
-            inside = renderer.cylinder.inside(pts, renderer.clip_scale, tol=_INSIDE_TOL)
-            counts.append((keep & inside).sum(-1))
-        return query(f, o, d, t, s, keep)
-
-    opacity, fine = [], []
-    renderer._query = watched
-    try:
-        for i, batch in enumerate(batches):
-            o, d = batch["rays_o"].repeat(3, 1), batch["rays_d"].repeat(3, 1)
-            t = torch.cat([batch["t0"], batch["t1"], batch["t_ref"]], 0)
-            counts.clear()
-            with torch.enable_grad(), renderer.image_autocast(o.device):
-                out = renderer(field, o, d, t, batch["bg"].repeat(3, 1), perturb=True,
-                               gen=torch.Generator().manual_seed(i), copies=3)
-            hit = renderer.cylinder.ray_interval(o, d)[2]
-            opacity.append(out[0]["opacity"].detach()[hit])
-            fine.append(counts[-1].float())
-    finally:
-        del renderer._query                       # the class's method again
-    op, kf = torch.cat(opacity), torch.cat(fine)
+    row = {"coarse": inputs[0], "fine": inputs[1] - inputs[0], "opaque": opaque / max(rays, 1)}
+    op = torch.cat(opacity).cpu() if opacity else torch.zeros(0)
+    kf = torch.cat(fine_in) if fine_in else torch.zeros(0)
+    if not n_fine or op.numel() == 0:
+        return row | dict.fromkeys(("faint", "faint_fine", "fine_faint", "fine_other"),
+                                   math.nan)
     faint = op < cut
-    return {"faint": float(faint.float().mean()),
-            "faint_fine": float(kf[faint].sum() / kf.sum().clamp(min=1)),
-            "fine_faint": float(kf[faint].mean()) if faint.any() else 0.0,
-            "fine_other": float(kf[~faint].mean()) if (~faint).any() else 0.0}
+    return row | {"faint": float(faint.float().mean()),
+                  "faint_fine": float(kf[faint].sum() / kf.sum().clamp(min=1)),
+                  "fine_faint": float(kf[faint].mean()) if faint.any() else 0.0,
+                  "fine_other": float(kf[~faint].mean()) if (~faint).any() else 0.0}
 
 
 def rebuilt_grid(renderer: Renderer, field: Field, resolution: int, time_bins: int,
@@ -181,22 +177,21 @@ def survey(run_dir: Path, thresholds: Sequence[float], grids: Sequence[str], n_b
 
     def row(name: str, grid: OccupancyGrid | None) -> dict:
         renderer.occupancy = grid
-        coarse, fine, opaque = ray_samples(renderer, field, batches)
-        where = fine_by_coarse_opacity(renderer, field, batches)
+        counted = ray_samples(renderer, field, batches)
         t0 = time.perf_counter()
         img = render_heldout([(field, renderer)], segments[:1], held, [0], frames)
         sec = time.perf_counter() - t0
         score = score_images([img[f, 0] for f in frames], [held.frames[f, 0] for f in frames],
                              lpips=False)
-        out = {"grid": name, "coarse": coarse, "fine": fine, "opaque": opaque, **where,
+        out = {"grid": name, **counted,
                "psnr": score["psnr"],
                "occupied": grid.occupied_fraction() if grid is not None else 1.0,
                "render_s": sec}
         log.info("%s %s: %.2f + %.2f samples per ray (%.3f of the rays opaque), occupied "
                  "%.3f, PSNR %.3f (%.1f s); faint rays %.3f of the hits, %.3f of the fine "
                  "inputs (%.1f fine per faint ray, %.1f per other)", run_dir.name, name,
-                 coarse, fine, opaque, out["occupied"], out["psnr"], sec, where["faint"],
-                 where["faint_fine"], where["fine_faint"], where["fine_other"])
+                 out["coarse"], out["fine"], out["opaque"], out["occupied"], out["psnr"], sec,
+                 out["faint"], out["faint_fine"], out["fine_faint"], out["fine_other"])
         return out
 
     def shape(g: OccupancyGrid) -> str:

@@ -57,8 +57,8 @@ def test_step_sets_a_fresh_fields_band_window_and_is_refused_where_it_cannot_app
         tmp_path, monkeypatch):
     """``--step 20`` renders the default job's fresh NeRF with the band window of step 20
     (of the paper's 4000-step annealing: the first position and time bands partly on,
-    the rest off), as issue 12's 20-step run had it; ``--step`` with ``--run``, or a
-    negative one, stops with a usage error before any work."""
+    the rest off), as issue 12's 20-step command leaves it with today's code; ``--step``
+    with ``--run``, or a negative one, stops with a usage error before any work."""
     from eventrecon.fields.encoding import band_window
     seen = {}
     real = bench_image.time_images

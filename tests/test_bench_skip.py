@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from test_occupancy import CYL, Blob, _rays
 
-from benchmarks.bench_skip import fine_by_coarse_opacity, parse_grid, ray_samples, rebuilt_grid
+from benchmarks.bench_skip import parse_grid, ray_samples, rebuilt_grid
 from eventrecon.render import volume
 from eventrecon.render.volume import Renderer
 
@@ -25,8 +27,10 @@ def test_without_a_grid_every_sample_of_both_levels_counts():
     hit = torch.cat([r.cylinder.ray_interval(b["rays_o"], b["rays_d"])[2] for b in batches])
     share = float(hit.float().mean())                  # a ray that misses costs nothing
     assert 0.9 < share < 1.0
-    coarse, fine, _ = ray_samples(r, Blob(), batches)
-    assert coarse == pytest.approx(32 * share) and fine == pytest.approx(24 * share)
+    counted = ray_samples(r, Blob(), batches)
+    assert counted["coarse"] == pytest.approx(32 * share)
+    assert counted["fine"] == pytest.approx(24 * share)
+    assert counted["fine_faint"] == counted["fine_other"] == 24   # every hit takes all
     assert r.n_fine == 24                              # restored
 
 
@@ -37,7 +41,8 @@ def test_the_coarse_count_is_the_renderers_own_at_the_fine_draws(monkeypatch):
     field, batches = Blob(), _batches(3, 60)
     r = Renderer(n_coarse=32, n_fine=32, skip="grid", **CYL)
     r.occupancy = rebuilt_grid(r, field, 24, 16, (1, 0), 0.01, passes=3)
-    coarse, fine, opaque = ray_samples(r, field, batches)
+    counted = ray_samples(r, field, batches)
+    coarse, fine, opaque = counted["coarse"], counted["fine"], counted["opaque"]
     seen: list[int] = []                               # coarse inputs of each render
     start = [0]
     draw = volume.sample_pdf
@@ -71,19 +76,19 @@ def test_a_grid_is_named_as_cells_bins_and_dilation():
 
 
 def test_fine_inputs_by_coarse_opacity_add_up_to_the_fine_count():
-    """The fine inputs counted per ray add up to :func:`ray_samples`' fine count (the
-    renderer's own counter), with a grid that skips most of the box; without a grid each
-    ray that meets the cylinder takes all ``n_fine``, faint or not."""
+    """The fine inputs counted per ray add up to the fine count of the renderer's own
+    counter, with a grid that skips most of the box; the renderer's own ``_query`` is
+    back afterwards; without a fine level there is nothing to split (NaN)."""
     field, batches = Blob(), _batches(3, 60)
     r = Renderer(n_coarse=32, n_fine=32, skip="grid", **CYL)
     r.occupancy = rebuilt_grid(r, field, 24, 16, (1, 0), 0.01, passes=3)
-    _, fine, _ = ray_samples(r, field, batches)
-    where = fine_by_coarse_opacity(r, field, batches)
+    c = ray_samples(r, field, batches)
     hits = sum(int(r.cylinder.ray_interval(b["rays_o"], b["rays_d"])[2].sum()) for b in batches)
-    total = (where["faint"] * where["fine_faint"] + (1 - where["faint"]) * where["fine_other"])
-    assert total * 3 * hits / (3 * 60 * len(batches)) == pytest.approx(fine, rel=1e-6)
-    assert 0 < where["faint"] < 1 and where["fine_faint"] < where["fine_other"] <= 32
+    per_hit = c["faint"] * c["fine_faint"] + (1 - c["faint"]) * c["fine_other"]
+    assert per_hit * 3 * hits / (3 * 60 * len(batches)) == pytest.approx(c["fine"], rel=1e-6)
+    assert 0 < c["faint"] < 1 and c["fine_faint"] < c["fine_other"] <= 32
+    assert c["faint_fine"] == pytest.approx(
+        c["faint"] * c["fine_faint"] / per_hit, rel=1e-6)
     assert "_query" not in vars(r)                     # the renderer's own method again
-    plain = Renderer(n_coarse=32, n_fine=24, **CYL)
-    where = fine_by_coarse_opacity(plain, field, batches)
-    assert where["fine_faint"] == where["fine_other"] == 24
+    coarse_only = Renderer(n_coarse=32, n_fine=0, **CYL)
+    assert math.isnan(ray_samples(coarse_only, field, batches)["faint"])

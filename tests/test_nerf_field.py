@@ -17,6 +17,7 @@ from eventrecon.fields.encoding import (
     BandAnnealing,
     PositionalEncoding,
     band_window,
+    encode_grouped,
     full_precision_products,
 )
 from eventrecon.render.volume import Renderer
@@ -113,6 +114,12 @@ def test_a_window_of_ones_is_skipped_exactly_and_a_loaded_window_is_applied() ->
     assert not on.pos_enc._all_on and not on.time_enc._all_on
     xyz, t = torch.rand(9, 3), torch.rand(9, 1)
     assert torch.equal(on.encode(xyz, t), annealing.encode(xyz, t))
+    # the host copy the grouped features read follows the loaded buffer
+    for e in (on.pos_enc, on.time_enc):
+        assert e.weights == tuple(e.window.tolist())
+    assert on.pos_enc.weights[2] == 0.0 < on.pos_enc.weights[0]
+    assert torch.equal(on.features(xyz, t), annealing.features(xyz, t))
+    assert torch.equal(on.features(xyz, t), on.encode(xyz, t)[:, on.feature_order])
 
 
 def test_band_annealing_callback_sets_every_encoding() -> None:
@@ -190,12 +197,13 @@ def _explicit_forward(f: NeRFField, xyz: torch.Tensor, t: torch.Tensor,
 
 
 @pytest.mark.parametrize("autocast", [None, torch.bfloat16])
-@pytest.mark.parametrize("step", [None, 0, 300, 1200, 3990])
+@pytest.mark.parametrize("step", [None, 0, 300, 800, 1200, 3990])
 def test_grouped_features_are_the_authors_encoding_permuted_and_give_its_field(step,
                                                                               autocast) -> None:
     """``features`` holds ``encode``'s values in ``feature_order`` (bands all on, and in
     annealing: all off; the first band of each encoding partly on, two runs of columns
-    apart; one band on, one half, the rest off; every band but a partial last one on);
+    apart; the first position band exactly on beside a partial time band; one band on,
+    one half, the rest off; every band but a partial last one on);
     in fp32, under bf16 autocast, differentiable in ``xyz``,
     and with reduced-precision fp32 products switched on, where the angles come from a
     gather instead of a product); the forward pass through the gathered weight columns
@@ -208,8 +216,9 @@ def test_grouped_features_are_the_authors_encoding_permuted_and_give_its_field(s
     if step is not None:
         f.set_progress(step)
         on = [(e.window > 0).sum().item() for e in (f.pos_enc, f.time_enc)]
-        assert on == {0: [0, 0], 300: [1, 1], 1200: [2, 1], 3990: [5, 3]}[step]
-        assert step == 0 or ((f.pos_enc.window > 0) & (f.pos_enc.window < 1)).any()
+        assert on == {0: [0, 0], 300: [1, 1], 800: [1, 1], 1200: [2, 1], 3990: [5, 3]}[step]
+        assert step != 800 or f.pos_enc.weights[0] == 1.0 > f.time_enc.weights[0]
+        assert step in (0, 800) or ((f.pos_enc.window > 0) & (f.pos_enc.window < 1)).any()
     xyz, t = torch.rand(301, 3) * 4 - 2, torch.rand(301, 1)
     enc = f.encode(xyz, t)
     assert sorted(f.feature_order.tolist()) == list(range(enc.shape[1]))
@@ -377,3 +386,18 @@ def test_density_alone_is_the_forward_density_bit_for_bit(skip, autocast) -> Non
         alone = f.density_only(xyz, t)
     assert alone.dtype == full.dtype == (torch.bfloat16 if autocast else torch.float32)
     assert torch.equal(alone, full) and float(alone.float().std()) > 0
+
+
+def test_grouped_features_refuse_a_window_of_the_wrong_length() -> None:
+    """A window or host weights that do not have one value per angle column (``F``) stop
+    with one error naming the argument, before anything is written."""
+    f = NeRFField(depth=1, width=8, pos_bands=2, time_bands=1, anneal_steps=0)
+    x = torch.rand(5, 4)
+    n = f.feature_freqs.shape[1]                               # 3·2 + 1 = 7 columns
+    with pytest.raises(InputError, match="window"):
+        encode_grouped(x, f.feature_freqs, torch.ones(n + 1))
+    with pytest.raises(InputError, match="weights"):
+        encode_grouped(x, f.feature_freqs, torch.ones(n), weights=[1.0] * (n - 1))
+    half = torch.full((n,), 0.5)
+    assert torch.equal(encode_grouped(x, f.feature_freqs, half, weights=[0.5] * n),
+                       encode_grouped(x, f.feature_freqs, half))      # weights read back

@@ -99,9 +99,9 @@ class PositionalEncoding(nn.Module):
 
     @property
     def weights(self) -> tuple[float, ...]:
-        """The window ``w_0 … w_{L−1}`` as Python floats, the buffer's (float32) values:
-        which bands are off, on or partly on, known without reading the buffer (no device
-        sync on a GPU)."""
+        """The window ``w_0 … w_{L−1}`` as Python floats, the values :meth:`set_progress`
+        or a loaded state dict wrote to the buffer (float32): which bands are off, on or
+        partly on, known without reading the buffer back from a device."""
         return self._weights
 
     @property
@@ -178,50 +178,58 @@ def _angles(x: Tensor, freqs: Tensor) -> Tensor:
     return torch.index_select(x, 1, freqs.argmax(0)) * freqs.amax(0).to(x.dtype)
 
 
-def encode_grouped(x: Tensor, freqs: Tensor, window: Sequence[float] | None = None,
-                   dtype: torch.dtype | None = None) -> Tensor:
+def encode_grouped(x: Tensor, freqs: Tensor, window: Tensor | None = None,
+                   dtype: torch.dtype | None = None,
+                   weights: Sequence[float] | None = None) -> Tensor:
     """``[x, w·sin(A), w·cos(A)]`` with ``A = x @ freqs`` (:func:`grouped_layout`).
 
-    ``x [N, ΣD]``, ``freqs [ΣD, F]``, ``window`` (``F`` floats: each column's band weight;
-    ``None``: all on) → ``[N, ΣD + 2F]`` in ``dtype`` (default ``x``'s; e.g. autocast's, so
-    that the first layer reads the features without a cast of its own: the same values as
-    casting afterwards). ``A`` is exact in ``x``'s dtype whatever autocast is active
-    (:func:`_angles`), so the values equal those of :class:`PositionalEncoding`, in other
-    columns (a ``−0`` input may give ``+0`` angles on a CPU). Written as three contiguous
-    blocks, at under half the time of the band-by-band layout, whose concatenation
-    copies a few elements per row (16 384 rows of the NeRF's 102 features on 2 cores:
-    1.1 ms in bf16 against 2.6–2.8 ms, and 0.4 ms for the cast).
+    ``x [N, ΣD]``, ``freqs [ΣD, F]``, ``window [F]`` (each column's band weight, on ``x``'s
+    device; ``None``: all on) → ``[N, ΣD + 2F]`` in ``dtype`` (default ``x``'s; e.g.
+    autocast's, so that the first layer reads the features without a cast of its own: the
+    same values as casting afterwards). ``A`` is exact in ``x``'s dtype whatever autocast
+    is active (:func:`_angles`), so the values equal those of :class:`PositionalEncoding`,
+    in other columns (a ``−0`` input may give ``+0`` angles on a CPU). Written as three
+    contiguous blocks, at under half the time of the band-by-band layout, whose
+    concatenation copies a few elements per row (16 384 rows of the NeRF's 102 features on
+    2 cores: 1.1 ms in bf16 against 2.6–2.8 ms, and 0.4 ms for the cast).
 
     Without gradients, the columns of bands that are off (``w = 0``) are written as zeros
     and their ``sin``, ``cos`` and angles are not computed (:func:`_active_runs`): early in
-    annealing most are off (a field 20 steps in, as issue 12 evaluated it, has 4 of the
-    NeRF's 49 columns on). The values are those of the product ``w·sin(A)`` but for the
-    sign of a zero (``+0`` where ``sin(A)·0`` is ``−0``) and a non-finite angle (``0``
-    where the product is NaN; the raw input column then holds the non-finite value)."""
+    annealing most are off (the default job 20 steps in has 4 of the NeRF's 49 columns
+    on). ``weights`` (``F`` floats, ``window``'s values on the host) says which, without
+    reading ``window`` back from a device (read when not given). The values are those of
+    the product ``w·sin(A)`` but for the sign of a zero (``+0`` where ``sin(A)·0`` is
+    ``−0``) and a non-finite angle (``0`` where the product is NaN; the raw input column
+    then holds the non-finite value)."""
+    d, n = x.shape[1], freqs.shape[1]
+    if window is not None and tuple(window.shape) != (n,):
+        raise InputError("encode_grouped", "window", f"a tensor of shape [{n}]",
+                         tuple(window.shape))
+    if weights is not None and len(weights) != n:
+        raise InputError("encode_grouped", "weights", f"{n} floats", len(weights))
     dtype = dtype or x.dtype
     if x.requires_grad and torch.is_grad_enabled():      # out= is not differentiable
         angles = _angles(x, freqs)
         sin, cos = torch.sin(angles), torch.cos(angles)
         if window is not None:
-            w = torch.tensor(window, dtype=x.dtype, device=x.device)
-            sin, cos = sin * w, cos * w
+            sin, cos = sin * window, cos * window
         return torch.cat([x, sin, cos], dim=-1).to(dtype)
-    d, n = x.shape[1], freqs.shape[1]
     out = x.new_empty(x.shape[0], d + 2 * n, dtype=dtype)
     out[:, :d] = x
-    runs = [(0, n)] if window is None else _active_runs(window)
+    if window is not None and weights is None:
+        weights = window.tolist()
+    runs = [(0, n)] if weights is None else _active_runs(weights)
     if sum(b - a for a, b in runs) < n:
         out[:, d:].zero_()
     for a, b in runs:
         angles = _angles(x, freqs if (a, b) == (0, n) else freqs[:, a:b])
-        scale = (None if window is None or all(v == 1.0 for v in window[a:b])
-                 else torch.tensor(window[a:b], dtype=x.dtype, device=x.device))
+        ones = weights is None or all(v == 1.0 for v in weights[a:b])
         for fn, first in ((torch.sin, d), (torch.cos, d + n)):
             cols = out[:, first + a:first + b]
-            if scale is None:
+            if ones:
                 fn(angles, out=cols)
             else:
-                torch.mul(fn(angles), scale, out=cols)
+                torch.mul(fn(angles), window[a:b], out=cols)
     return out
 
 

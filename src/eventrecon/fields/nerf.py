@@ -162,13 +162,16 @@ class NeRFField(Field):
         the encoding's time, with the weight columns that take them gathered in the
         same order (:meth:`layer_weight`)."""
         encs = (self.pos_enc, self.time_enc)
-        window = (None if all(e.all_on for e in encs)
-                  else [w for e in encs for w in e.weights for _ in range(e.in_dim)])
+        window, weights = None, None
+        if not all(e.all_on for e in encs):
+            window = torch.cat([e.window.repeat_interleave(e.in_dim) for e in encs])
+            window = window.to(xyz.dtype)
+            weights = [w for e in encs for w in e.weights for _ in range(e.in_dim)]
         device = xyz.device.type
         dtype = (torch.get_autocast_dtype(device) if torch.amp.is_autocast_available(device)
                  and torch.is_autocast_enabled(device) else None)
         return encode_grouped(torch.cat([xyz, t.to(xyz.dtype)], dim=-1), self.feature_freqs,
-                              window, dtype)
+                              window, dtype, weights)
 
     def layer_weight(self, i: int) -> Tensor:
         """Trunk layer ``i``'s weight ``[width, in]`` with its columns in the order of the
