@@ -398,6 +398,8 @@ def test_grouped_features_refuse_a_window_of_the_wrong_length() -> None:
         encode_grouped(x, f.feature_freqs, torch.ones(n + 1))
     with pytest.raises(InputError, match="weights"):
         encode_grouped(x, f.feature_freqs, torch.ones(n), weights=[1.0] * (n - 1))
+    with pytest.raises(InputError, match="weights"):
+        encode_grouped(x, f.feature_freqs, None, weights=[0.5] * n)     # no window
     half = torch.full((n,), 0.5)
     assert torch.equal(encode_grouped(x, f.feature_freqs, half, weights=[0.5] * n),
                        encode_grouped(x, f.feature_freqs, half))      # weights read back

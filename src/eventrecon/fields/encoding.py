@@ -205,8 +205,9 @@ def encode_grouped(x: Tensor, freqs: Tensor, window: Tensor | None = None,
     if window is not None and tuple(window.shape) != (n,):
         raise InputError("encode_grouped", "window", f"a tensor of shape [{n}]",
                          tuple(window.shape))
-    if weights is not None and len(weights) != n:
-        raise InputError("encode_grouped", "weights", f"{n} floats", len(weights))
+    if weights is not None and (window is None or len(weights) != n):
+        raise InputError("encode_grouped", "weights", f"{n} floats, with the window",
+                         "no window" if window is None else len(weights))
     dtype = dtype or x.dtype
     if x.requires_grad and torch.is_grad_enabled():      # out= is not differentiable
         angles = _angles(x, freqs)
