@@ -51,18 +51,32 @@ from typing import Any
 
 import lightning.pytorch as pl
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from eventrecon.errors import InputError
 from eventrecon.render.occupancy_lookup import lookup_rays
 
-__all__ = ["OccupancyGrid", "OccupancyUpdate"]
+__all__ = ["OccupancyGrid", "OccupancyUpdate", "dilate"]
 
 log = logging.getLogger(__name__)
 
 #: ``σ(x [N, 3], t [N, 1]) -> [N]`` density of the field with the clipping mask applied.
 DensityFn = Callable[[Tensor, Tensor], Tensor]
+
+
+def dilate(core: Tensor, s: int, b: int) -> Tensor:
+    """``[B, G, G, G]`` bool: ``core`` widened by ``s`` cells on either side along each
+    spatial axis (a ``(2s + 1)³`` cube) and ``b`` bins on either side in time (at most
+    ``B − 1``), the OR over the neighbourhood, one axis at a time."""
+    out = core
+    for axis, reach in ((1, s), (2, s), (3, s), (0, min(b, core.shape[0] - 1))):
+        n = out.shape[axis]
+        for _ in range(min(reach, n - 1)):
+            grown = out.clone()
+            grown.narrow(axis, 1, n - 1).logical_or_(out.narrow(axis, 0, n - 1))
+            grown.narrow(axis, 0, n - 1).logical_or_(out.narrow(axis, 1, n - 1))
+            out = grown
+    return out
 
 
 class OccupancyGrid(nn.Module):
@@ -153,14 +167,7 @@ class OccupancyGrid(nn.Module):
     def refresh(self) -> None:
         """Recompute :attr:`occupancy` from the densities: above the effective threshold or
         unasked, dilated by :attr:`dilation` (cells in space, bins in time)."""
-        core = self._dense().float()
-        s, b = self.dilation
-        if s:
-            core = F.max_pool3d(core[:, None], 2 * s + 1, stride=1, padding=s)[:, 0]
-        for _ in range(min(b, self.time_bins - 1)):
-            core = torch.maximum(core, torch.cat([core[1:], core[-1:]]))
-            core = torch.maximum(core, torch.cat([core[:1], core[:-1]]))
-        self.occ.copy_(core > 0)
+        self.occ.copy_(dilate(self._dense(), *self.dilation))
 
     def _load_from_state_dict(self, *args: Any, **kwargs: Any) -> None:  # type: ignore[override]
         super()._load_from_state_dict(*args, **kwargs)
@@ -171,7 +178,7 @@ class OccupancyGrid(nn.Module):
         point lies in the box (``[...]`` each)."""
         u = (x - self.lo.to(x)) / (self.hi - self.lo).to(x)
         inside = ((u >= 0) & (u <= 1)).all(-1)
-        g, b = self.resolution, self.time_bins
+        b, g = self.occupancy.shape[:2]          # the cells of the mask the renderer reads
         ijk = (u * g).long().clamp(0, g - 1)
         tb = (t[..., 0] * b).long().clamp(0, b - 1)
         return ((tb * g + ijk[..., 0]) * g + ijk[..., 1]) * g + ijk[..., 2], inside
@@ -199,15 +206,30 @@ class OccupancyGrid(nn.Module):
         """Ask the field about the unasked cells and random shares ``recheck`` of the
         cells above the threshold and ``fraction`` of the empty ones (one jittered point
         each); returns the number of cells asked."""
+        asked = self._update_cells(density, gen)
+        self.refresh()
+        return asked
+
+    def _update_cells(self, density: DensityFn, gen: torch.Generator) -> int:
+        """:meth:`update` without the :meth:`refresh`."""
         flat_occ = self._dense().reshape(-1)
         n = flat_occ.numel()
         pick = torch.rand(n, generator=gen, device=gen.device).to(flat_occ.device)
         unasked = ~self.asked.view(-1)
         chosen = torch.where(flat_occ, pick < self.recheck, pick < self.fraction) | unasked
         cells = chosen.nonzero().squeeze(1)
-        if cells.numel() == 0:
-            return 0
-        g, b = self.resolution, self.time_bins
+        if cells.numel():
+            decay = torch.where(flat_occ[cells], self.decay ** (1.0 / self.recheck),
+                                self.decay)
+            self.ask(cells, decay, self.density, self.asked, density, gen)
+        return int(cells.numel())
+
+    def ask(self, cells: Tensor, decay: Tensor, values: Tensor, asked: Tensor,
+            density: DensityFn, gen: torch.Generator) -> None:
+        """The moving maximum of ``values [B', G', G', G']`` (``asked`` alike, bool) at its
+        flat ``cells [n]``, from one jittered point each over the box and the time bin:
+        ``D ← max(decay·D, σ)`` where asked before, ``D ← σ`` otherwise (``decay [n]``)."""
+        b, g = values.shape[:2]
         jitter = torch.rand(cells.numel(), 4, generator=gen, device=gen.device).to(cells.device)
         k = cells % g
         j = (cells // g) % g
@@ -218,13 +240,10 @@ class OccupancyGrid(nn.Module):
         t = ((tb.float() + jitter[:, 3]) / b)[:, None]
         new = torch.cat([density(x[a:a + self.chunk], t[a:a + self.chunk]).float()
                          for a in range(0, cells.numel(), self.chunk)])
-        flat, asked = self.density.view(-1), self.asked.view(-1)
+        flat, seen = values.view(-1), asked.view(-1)
         old = flat[cells]
-        decay = torch.where(flat_occ[cells], self.decay ** (1.0 / self.recheck), self.decay)
-        flat[cells] = torch.where(asked[cells], torch.maximum(decay * old, new), new)
-        asked[cells] = True
-        self.refresh()
-        return int(cells.numel())
+        flat[cells] = torch.where(seen[cells], torch.maximum(decay * old, new), new)
+        seen[cells] = True
 
     def occupied_fraction(self) -> float:
         """Share of the cells that are occupied (or unasked)."""
