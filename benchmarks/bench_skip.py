@@ -51,6 +51,7 @@ from eventrecon.data.selection import heldout_split, training_split
 from eventrecon.evaluate import render_heldout, score_images
 from eventrecon.fields.base import Field
 from eventrecon.render.occupancy import OccupancyGrid
+from eventrecon.render.occupancy_refined import RefinedGrid
 from eventrecon.render.volume import _INSIDE_TOL, Renderer
 from eventrecon.segments import run_segments
 
@@ -198,7 +199,11 @@ def survey(run_dir: Path, thresholds: Sequence[float], grids: Sequence[str], n_b
         tau = float(g.effective_threshold())       # min(threshold, mean asked density)
         cut = f"threshold {g.threshold:g}" + (f" (effective {tau:.3g})"
                                               if tau < g.threshold * (1 - 1e-6) else "")
-        return f"{g.resolution}³×{g.time_bins}, dilation {g.dilation[0]},{g.dilation[1]}, {cut}"
+        refined = (f", refined {g.refine[0]}×/{g.refine[1]}× (dilation "
+                   f"{g.refine_dilation[0]},{g.refine_dilation[1]})"
+                   if isinstance(g, RefinedGrid) else "")
+        return (f"{g.resolution}³×{g.time_bins}, dilation {g.dilation[0]},{g.dilation[1]}"
+                f"{refined}, {cut}")
 
     rows = [row(f"as trained: {shape(trained)}", trained)]
     base = trained.threshold

@@ -39,7 +39,7 @@ from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.precision import image_autocast
 from eventrecon.render.clipping import NO_CLIPPING, Cylinder
-from eventrecon.render.occupancy import OccupancyGrid
+from eventrecon.render.occupancy_refined import build_grid
 from eventrecon.render.queries import query_density, query_field
 from eventrecon.render.samplers import pdf_bins, sample_pdf, step_sizes, stratified
 
@@ -115,7 +115,8 @@ class Renderer(nn.Module):
     union afresh, with 192 field evaluations per ray instead of 256 at 64 + 128 samples.
     Rays that miss the clipping volume show the background; points outside get ``σ = 0``.
 
-    Empty-space skipping (``skip="grid"``): a time-aware :class:`OccupancyGrid` (kept up
+    Empty-space skipping (``skip="grid"``): a time-aware
+    :class:`~eventrecon.render.occupancy.OccupancyGrid` (kept up
     to date from the field by :class:`~eventrecon.render.occupancy.OccupancyUpdate`)
     says which samples can hold density; the others get ``σ = 0`` without reaching the
     field, and so do samples outside the cylinder. The coarse samples are evaluated front
@@ -144,7 +145,8 @@ class Renderer(nn.Module):
         clipping: ``False`` replaces the cylinder by :data:`~.clipping.NO_CLIPPING`
             (``r = 1``, ``y ∈ [−1, 1]``: the "w/o clipping" ablation).
         skip: ``"none"`` or ``"grid"`` (empty-space skipping).
-        occupancy: arguments of the :class:`OccupancyGrid` (``skip="grid"``).
+        occupancy: arguments of the grid (``skip="grid"``; ``refine`` set: a
+            :class:`~eventrecon.render.occupancy_refined.RefinedGrid`).
         march_chunks, stop_transmittance: front-to-back groups of coarse samples and the
             transmittance below which a ray stops (``skip="grid"``).
         query_buckets: row counts rounded up to this many sizes per doubling
@@ -191,7 +193,7 @@ class Renderer(nn.Module):
         self.march_chunks = max(1, int(march_chunks))
         self.stop_transmittance = float(stop_transmittance)
         self.query_buckets, self.query_rows = int(query_buckets), int(query_rows)
-        self.occupancy = (OccupancyGrid(*self.cylinder.box(), **(occupancy or {}))
+        self.occupancy = (build_grid(*self.cylinder.box(), **dict(occupancy or {}))
                           if skip == "grid" else None)
         #: the run's mixed dtype for renders without gradients (set by the builder)
         self.image_dtype: torch.dtype | None = None
