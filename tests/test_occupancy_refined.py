@@ -24,7 +24,7 @@ def _updated(field, steps: int, **grid) -> Renderer:
     return r
 
 
-@pytest.mark.parametrize(("s", "b"), list(itertools.product([0, 1, 2], [0, 1, 3])))
+@pytest.mark.parametrize(("s", "b"), list(itertools.product([0, 1, 2], [0, 1, 3, 6])))
 def test_dilate_is_the_or_over_the_neighbourhood(s: int, b: int) -> None:
     """Against max pooling of the 0/1 grid in space and a shift in time, one bin at a time."""
     core = torch.rand(5, 7, 7, 7, generator=torch.Generator().manual_seed(s + 5 * b)) < 0.05
@@ -46,18 +46,17 @@ def test_the_mask_is_the_gate_and_the_dilated_gated_fine_cells() -> None:
     g.fine_asked.fill_(True)
     g.fine_asked[0, 0, 0, 0] = False             # unasked, but under a closed gate
     g.fine_density[2, 4, 2, 6] = 1.0             # inside the coarse cell: its corner child
-    g.fine_density[3, 5, 3, 7] = 1.0             # also inside (another bin)
     g.fine_density[0, 7, 7, 7] = 1.0             # dense but under a closed gate
     g.refresh()
     idx = torch.stack(torch.meshgrid(*(torch.arange(n) for n in g.fine_occ.shape),
                                      indexing="ij"))
     gate = (idx[0] // 2 == 1) & (idx[1] // 2 == 2) & (idx[2] // 2 == 1) & (idx[3] // 2 == 3)
     near = torch.zeros_like(gate)
-    for c in ((2, 4, 2, 6), (3, 5, 3, 7)):
-        far = (idx - torch.tensor(c)[:, None, None, None, None]).abs()
-        near |= (far[0] == 0) & (far[1:] <= 1).all(0)
+    far = (idx - torch.tensor([2, 4, 2, 6])[:, None, None, None, None]).abs()
+    near |= (far[0] == 0) & (far[1:] <= 1).all(0)
     assert torch.equal(g.occupancy, gate & near)
-    assert int(g.occupancy.sum()) == 8 + 8       # each corner child sees 2³ cells of its parent
+    # the corner child keeps the 2³ cells of its parent in its own bin, of the parent's 16
+    assert int(g.occupancy.sum()) == 8 and int(gate.sum()) == 16
     # the mask never keeps more than the coarse grid's
     assert bool((g.occupancy <= g.gate()).all())
 
@@ -98,7 +97,7 @@ def test_updates_ask_under_open_gates_within_the_budget_and_forget_under_closed_
     grid.update(slab, torch.Generator().manual_seed(0))      # the coarse cells all asked
     asked = [grid.update(slab, torch.Generator().manual_seed(s)) for s in range(1, 41)]
     # coarse: a quarter of the 256 dense cells and of the 768 empty ones per update; fine:
-    # the budget (every gated fine cell, unasked or dense, has probability 0.25 · q)
+    # the budget, shared between the unasked cells and the re-asks
     fine_mean = sum(asked) / 40 - 0.25 * (8 * 8 * 8 * 2)
     assert 0.8 * 300 <= fine_mean <= 1.2 * 300
     assert bool((grid.fine_asked <= grid.gate()).all())      # nothing kept under a closed gate
@@ -118,6 +117,39 @@ def test_updates_ask_under_open_gates_within_the_budget_and_forget_under_closed_
     assert bool(grid.occupancy.all())
 
 
+def test_a_wide_gate_pauses_and_forgets_the_fine_level_and_reasks_never_stop() -> None:
+    """Above ``refine_below`` nothing is asked and the mask is the gate; below it, with
+    more unasked cells than the budget, half the budget still re-asks cells."""
+    grid = RefinedGrid([-1, -1, -1], [1, 1, 1], resolution=8, time_bins=1, threshold=0.01,
+                       fraction=0.25, recheck=0.25, dilation=(0, 0), refine=(4, 1),
+                       refine_budget=400, refine_below=0.3)
+
+    def half(x, t):                              # σ = 1 on x > 0: the gate covers half
+        return (x[:, 0] > 0).float()
+
+    def quarter(x, t):                           # σ = 1 on x > 0.5: a quarter
+        return (x[:, 0] > 0.5).float()
+
+    for s in range(3):
+        grid.update(quarter, torch.Generator().manual_seed(s))
+    assert grid.fine_asked.any()
+    n_gate = int(grid.gate().sum())              # 8 × 8 × 2 coarse cells × 4³
+    assert n_gate == 128 * 64
+    # with 8192 gated cells and a budget of 400, the asked ones keep getting re-asked
+    seen = grid.fine_asked.view(-1)[grid.gate().view(-1)]
+    chosen, _ = grid._choose(grid.gate().view(-1).nonzero().squeeze(1), seen,
+                             torch.Generator().manual_seed(7))
+    reasked = int((chosen & seen).sum())
+    assert reasked >= 100 and int(chosen.sum()) <= 1.3 * 400
+    # the field widens past refine_below: paused, forgotten, the mask is the gate
+    for s in range(3, 6):
+        asked = grid.update(half, torch.Generator().manual_seed(s))
+    assert float(grid.gate().float().mean()) > 0.3
+    assert not grid.fine_asked.any()
+    assert torch.equal(grid.occupancy, grid.gate())
+    assert asked <= 1024                         # the coarse level's asks alone
+
+
 def test_the_refined_grid_resumes_exactly_and_renders_with_fewer_samples() -> None:
     field = Blob()
     cfg = {"resolution": 16, "time_bins": 8, "threshold": 0.01, "refine": [2, 4]}
@@ -125,6 +157,8 @@ def test_the_refined_grid_resumes_exactly_and_renders_with_fewer_samples() -> No
     again = Renderer(n_coarse=32, n_fine=32, skip="grid", occupancy=dict(cfg), **CYL)
     again.load_state_dict({k: v.clone() for k, v in r.state_dict().items()})
     assert torch.equal(again.occupancy.occupancy, r.occupancy.occupancy)
+    assert r.occupancy.fine_asked.any()
+    assert not torch.equal(r.occupancy.occupancy, r.occupancy.gate())
     for rr in (r, again):
         rr.occupancy.update(lambda x, tt, rr=rr: rr.masked_density(field, x, tt),
                             torch.Generator().manual_seed(42))
@@ -152,6 +186,7 @@ def test_the_compiled_lookup_reads_the_refined_mask() -> None:
     s = torch.linspace(1.5, 3.5, 48).expand(300, 48).contiguous()
     n, k = s.shape
     grid = r.occupancy
+    assert grid.fine_asked.any() and not torch.equal(grid.occupancy, grid.gate())
     ref = grid.occupied(o[:, None, :] + s[..., None] * d[:, None, :],
                         t[:, None, :].expand(n, k, 1))
     assert torch.equal(grid.occupied_rays(o, d, t, s), ref)

@@ -408,7 +408,6 @@ def test_betas_power_raises_adams_betas_and_the_record_and_tables_say_so(data_di
             build.build_module(tiny_config(data_dir, bad), props, None, Segment(0, 1000))
 
 
-
 def test_a_refined_grid_is_built_recorded_and_footnoted(data_dir: Path, tmp_path: Path):
     from eventrecon.render.occupancy_refined import RefinedGrid
     from eventrecon.report.cells import method_notes
@@ -428,6 +427,9 @@ def test_a_refined_grid_is_built_recorded_and_footnoted(data_dir: Path, tmp_path
         in notes
     text = format_summary({**info, "status": "ok"}, tmp_path)
     assert "empty-space skipping (grid refined 2× in space, 4× in time)" in text
+    with pytest.raises(InputError, match=r"render\.occupancy\.refine"):
+        records.run_info(tiny_config(data_dir, "render.occupancy.refine=5"), {})
+
 
 def test_a_segment_trained_by_an_older_method_version_trains_again(
         data_dir: Path, tmp_path: Path, monkeypatch, caplog):

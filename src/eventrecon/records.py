@@ -139,8 +139,10 @@ def _refine(render: Any) -> list[int] | None:
     """``render.occupancy.refine`` of a run that skips with a grid (a refined grid,
     :mod:`eventrecon.render.occupancy_refined`), else ``None``."""
     refine = (render.get("occupancy") or {}).get("refine")
-    return ([int(v) for v in refine] if render.get("skip") == "grid" and refine is not None
-            else None)
+    if render.get("skip") != "grid" or refine is None:
+        return None
+    from eventrecon.render.occupancy_refined import config_pair  # the renderer's check
+    return list(config_pair(refine, "refine", 1))
 
 
 def _device_type(cfg: Any) -> str | None:
