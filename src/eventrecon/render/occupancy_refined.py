@@ -172,6 +172,7 @@ class RefinedGrid(OccupancyGrid):
         decay = torch.where(above, rate, self.decay)
         return chosen, decay
 
+
 def build_grid(lo: Sequence[float], hi: Sequence[float], **cfg: Any) -> OccupancyGrid:
     """The renderer's grid from ``render.occupancy``: a :class:`RefinedGrid` where
     ``refine`` is set (not ``None``), an :class:`OccupancyGrid` otherwise (the
