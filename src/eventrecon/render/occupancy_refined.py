@@ -136,13 +136,16 @@ class RefinedGrid(OccupancyGrid):
         asked = self._update_cells(density, gen)
         super().refresh()                        # the gate of this update
         gate4 = self.gate()
+        per_parent = gate4.numel() // self.occ.numel()
+        if int(self.occ.sum()) * per_parent > self.refine_below * gate4.numel():
+            self.fine_asked.zero_()              # paused: forgotten, the mask is the gate
+            self.fine_occ.copy_(gate4)
+            return asked
         gate = gate4.view(-1)
         seen = self.fine_asked.view(-1)
         seen &= gate                             # forget the cells under a closed gate
         cand = gate.nonzero().squeeze(1)
-        if cand.numel() > self.refine_below * gate.numel():
-            seen.zero_()                         # paused: the mask falls back to the gate
-        elif cand.numel():
+        if cand.numel():
             chosen, decay = self._choose(cand, seen[cand], gen)
             cells = cand[chosen]
             if cells.numel():
