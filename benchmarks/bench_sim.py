@@ -42,7 +42,6 @@ import types
 from pathlib import Path
 
 import numpy as np
-import torch
 from omegaconf import OmegaConf
 
 from eventrecon.sim import event_sim, ideal, merge
@@ -68,17 +67,12 @@ class Grating:
         self.P = width * height
 
     def __call__(self, g: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """``L [N]`` of pixels ``g [N]`` at times ``t [N]``: one buffer, updated in place.
-
-        The sine is torch's vectorised float64 ``sin`` (SLEEF, within 1 ulp, the same
-        bits wherever an element sits in its block), on numpy's buffer without a copy:
-        numpy's is the scalar libm call here, ~15 against ~3 ns per element on the
-        EPYC, which made the sine the larger part of the signal's time."""
+        """``L [N]`` of pixels ``g [N]`` at times ``t [N]``: one buffer, updated in place
+        (the same values as the plain expression, about 25 % faster)."""
         x = self.a[g]
         x *= t
         x += self.phi[g]
-        xt = torch.from_numpy(x)
-        torch.sin(xt, out=xt)
+        np.sin(x, out=x)
         x *= self.c[g]
         x += 1.0
         x *= self.m
