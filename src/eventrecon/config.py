@@ -34,21 +34,32 @@ from omegaconf import OmegaConf
 from eventrecon.errors import InputError
 from eventrecon.naming import dataset_name
 
-__all__ = ["register_resolvers", "paper_steps", "run_data_name", "SCHEDULES"]
+__all__ = ["register_resolvers", "paper_steps", "run_data_name", "max_steps", "SCHEDULES"]
 
 #: ``trainer.schedule`` values.
 SCHEDULES: tuple[str, ...] = ("paper", "compressed")
 
 
+def max_steps(trainer: Any) -> int:
+    """``trainer.max_steps``, checked: an integer number of steps ``>= 1`` (``trainer`` the
+    config's ``trainer`` section), else one :class:`InputError` naming it.
+
+    >>> max_steps({"max_steps": 9000})
+    9000
+    """
+    value = trainer.get("max_steps") if trainer is not None else None
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise InputError("config", "trainer.max_steps", "an integer number of steps >= 1",
+                         "missing" if value is None else value)
+    return int(value)
+
+
 def paper_steps(steps: int, *, _root_: Any) -> int:
     """``steps`` of the paper's run, as ``trainer.schedule`` says (module docstring)."""
-    try:
-        trainer = _root_.trainer
-        schedule = str(trainer.get("schedule", "paper"))
-        total, paper = int(trainer.max_steps), int(trainer.get("paper_steps", 150000))
-    except Exception:  # noqa: BLE001 - no trainer section: a config outside train.py
-        raise InputError("config", "trainer.max_steps",
-                         "an integer (needed by ${paper_steps:...})", "missing") from None
+    trainer = _root_.get("trainer")
+    total = max_steps(trainer)
+    schedule = str(trainer.get("schedule", "paper"))
+    paper = int(trainer.get("paper_steps", 150000))
     if schedule not in SCHEDULES:
         raise InputError("config", "trainer.schedule", " or ".join(SCHEDULES), schedule)
     n = int(steps)

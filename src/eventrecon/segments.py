@@ -22,6 +22,7 @@ from collections.abc import Sequence
 
 from omegaconf import DictConfig, OmegaConf
 
+from eventrecon.config import max_steps
 from eventrecon.data.batcher import Segment
 
 __all__ = ["make_segments", "crossfade_weights", "resolve_segments", "segment_steps",
@@ -81,13 +82,14 @@ def crossfade_weights(segments: Sequence[Segment], t: float) -> list[tuple[int, 
 
 
 def segment_steps(cfg: DictConfig, n_segments: int) -> int:
-    """Optimiser steps of each segment: ``trainer.max_steps``, or with
-    ``trainer.split_steps=true`` the run's budget ``ceil(max_steps / n_segments)``.
+    """Optimiser steps of each segment: ``trainer.max_steps`` (checked,
+    :func:`~eventrecon.config.max_steps`), or with ``trainer.split_steps=true`` the run's
+    budget ``ceil(max_steps / n_segments)``.
 
     >>> segment_steps(OmegaConf.create({"trainer": {"max_steps": 1000, "split_steps": True}}), 3)
     334
     """
-    total = int(cfg.trainer.max_steps)
+    total = max_steps(cfg.trainer)
     return math.ceil(total / n_segments) if cfg.trainer.get("split_steps") else total
 
 
