@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 from integration import TINY, TINY_NERF, tiny_config
+from omegaconf.errors import InterpolationResolutionError
 
 from eventrecon import build, runner
 from eventrecon.errors import InputError
@@ -97,11 +98,60 @@ CASES = {
                      r"got /nonexistent/x\.ckpt$"),
 }
 
+# keys checked before any data work (eventrecon.config.check_run, build.optim_numbers,
+# precision.resolve_precision): before these checks a typo gave a traceback from deep
+# inside (Lightning's max_steps and precision checks, AdamW's, int('abc'), an IndexError)
+EARLY = {
+    "max_steps_negative": (["trainer.max_steps=-5"],
+                           r"^config: trainer\.max_steps: expected an integer number of steps "
+                           r">= 1, got -5$"),
+    "max_steps_zero": (["trainer.max_steps=0"], r"trainer\.max_steps: .* got 0$"),
+    "max_steps_text": (["trainer.max_steps=abc"], r"trainer\.max_steps: .* got abc$"),
+    "max_steps_fraction": (["trainer.max_steps=2.5"], r"trainer\.max_steps: .* got 2\.5$"),
+    "n_rays_zero": (["trainer.n_rays=0"],
+                    r"^config: trainer\.n_rays: expected an integer number of rays >= 1, "
+                    r"got 0$"),
+    "seed_text": (["seed=abc"], r"^config: seed: expected an integer, got abc$"),
+    "segment_text": (["data.segment=abc"],
+                     r"^config: data\.segment: expected null \(every segment\) or an "
+                     r"integer >= 0, got abc$"),
+    "segment_negative": (["data.segment=-1"], r"data\.segment: .* got -1$"),
+    "lr_negative": (["model.optim.lr=-1"],
+                    r"^config: model\.optim\.lr: expected a finite number > 0, got -1$"),
+    "lr_text": (["model.optim.lr=abc"], r"model\.optim\.lr: .* got abc$"),
+    "weight_decay_negative": (["model.optim.weight_decay=-0.1"],
+                              r"^config: model\.optim\.weight_decay: expected a finite "
+                              r"number >= 0, got -0\.1$"),
+    "eps_zero": (["+model.optim.eps=0"], r"model\.optim\.eps: expected a finite number > 0"),
+    "precision_unknown": (["trainer.lightning.precision=bogus"],
+                          r"^config: trainer\.lightning\.precision: expected auto or one of "
+                          r"Lightning's: .*bf16-mixed.*, got bogus$"),
+}
+
 
 @pytest.mark.parametrize("case", sorted(CASES))
 def test_bad_config_value_is_one_line(case: str, data_dir: Path, tmp_path: Path):
     overrides, pattern = CASES[case]
     _raises_one_line(tiny_config(data_dir, *FAST, *overrides), tmp_path, pattern)
+
+
+@pytest.mark.parametrize("case", sorted(EARLY))
+def test_a_bad_run_key_fails_before_the_run_folder_is_made(case: str, data_dir: Path,
+                                                           tmp_path: Path):
+    overrides, pattern = EARLY[case]
+    _raises_one_line(tiny_config(data_dir, *FAST, *overrides), tmp_path / "run", pattern)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_schedule_in_the_papers_steps_names_a_bad_step_budget(data_dir: Path):
+    """``${paper_steps:N}`` reads ``trainer.max_steps`` when a schedule is compressed: a bad
+    budget is named there too (OmegaConf wraps the resolver's error)."""
+    cfg = tiny_config(data_dir, "trainer.max_steps=abc", "trainer.schedule=compressed",
+                      "model.anneal_steps=${paper_steps:4000}")
+    with pytest.raises(InterpolationResolutionError,
+                       match=r"trainer\.max_steps: expected an integer number of steps >= 1, "
+                             r"got abc"):
+        cfg.model.anneal_steps  # noqa: B018 - the resolver runs on access
 
 
 def test_checkpoint_of_another_backbone(nerf_ckpt: Path, data_dir: Path, tmp_path: Path):
@@ -164,6 +214,8 @@ def _train_py(*overrides: str, data_dir: Path, run_dir: Path,
     ("scene.threshold=0", "scene spheres: threshold: expected a contrast threshold > 0, got 0.0"),
     ("scene.events=[{name:refractory,period_s:-1}]",
      "scene spheres: events[0].period_s: expected a period ≥ 0 s, got -1.0"),
+    ("trainer.max_steps=-5",
+     "config: trainer.max_steps: expected an integer number of steps >= 1, got -5"),
 ])
 def test_train_py_prints_one_error_line_and_exits_2(override: str, line: str, data_dir: Path,
                                                    tmp_path: Path):

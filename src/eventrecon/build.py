@@ -236,6 +236,31 @@ def lr_decay_start(cfg: DictConfig) -> float:
     return a
 
 
+def optim_numbers(cfg: DictConfig) -> tuple[float, float, float]:
+    """``model.optim``'s ``(lr, weight_decay, eps)`` (defaults ``1e-3, 0, 1e-8``): an
+    :class:`InputError` unless the lr and eps are finite numbers > 0 and the weight decay
+    a finite number >= 0 (where AdamW's own check would stop the run with a traceback).
+
+    >>> optim_numbers(OmegaConf.create({"model": {"optim": {"lr": 1e-4, "weight_decay": 0.1}}}))
+    (0.0001, 0.1, 1e-08)
+    >>> try:
+    ...     optim_numbers(OmegaConf.create({"model": {"optim": {"lr": "abc"}}}))
+    ... except InputError as e:
+    ...     print(e.field)
+    model.optim.lr
+    """
+    optim = cfg.model.get("optim", {}) or {}
+    out = []
+    for key, default, low in (("lr", 1e-3, "> 0"), ("weight_decay", 0.0, ">= 0"),
+                              ("eps", 1e-8, "> 0")):
+        value = optim.get(key, default)
+        x = _as_number(value)
+        if not (math.isfinite(x) and (x > 0.0 if low == "> 0" else x >= 0.0)):
+            raise InputError("config", f"model.optim.{key}", f"a finite number {low}", value)
+        out.append(x)
+    return out[0], out[1], out[2]
+
+
 def adam_betas(cfg: DictConfig) -> tuple[float, float]:
     r"""Adam's ``(β1, β2)`` for ``cfg.model.optim``: its ``betas`` (PyTorch's ``(0.9,
     0.999)``, the authors', unless the backbone names its own) raised to the power
@@ -283,11 +308,9 @@ def build_module(cfg: DictConfig, props: SceneProperties, train: SplitData | Non
     if train is not None:
         batcher = RayBatcher(train, seg, decay=props.decay, bayer=props.bayer,
                              neg_ratio=cfg.data.neg_ratio, device=device)
-    optim = cfg.model.get("optim", {}) or {}
-    step = StepConfig(n_rays=cfg.trainer.n_rays, lr=float(optim.get("lr", 1e-3)),
-                      weight_decay=float(optim.get("weight_decay", 0.0)),
-                      betas=adam_betas(cfg),
-                      eps=float(optim.get("eps", 1e-8)),
+    lr, weight_decay, eps = optim_numbers(cfg)
+    step = StepConfig(n_rays=cfg.trainer.n_rays, lr=lr, weight_decay=weight_decay,
+                      betas=adam_betas(cfg), eps=eps,
                       max_nonfinite=cfg.trainer.max_nonfinite, log_every=cfg.trainer.log_every,
                       seed=cfg.seed + 1000 * k, max_steps=int(cfg.trainer.max_steps),
                       lr_end_factor=lr_end_factor(cfg), lr_warmup=lr_warmup(cfg),

@@ -34,7 +34,8 @@ from omegaconf import OmegaConf
 from eventrecon.errors import InputError
 from eventrecon.naming import dataset_name
 
-__all__ = ["register_resolvers", "paper_steps", "run_data_name", "max_steps", "SCHEDULES"]
+__all__ = ["register_resolvers", "paper_steps", "run_data_name", "max_steps", "check_run",
+           "SCHEDULES"]
 
 #: ``trainer.schedule`` values.
 SCHEDULES: tuple[str, ...] = ("paper", "compressed")
@@ -52,6 +53,38 @@ def max_steps(trainer: Any) -> int:
         raise InputError("config", "trainer.max_steps", "an integer number of steps >= 1",
                          "missing" if value is None else value)
     return int(value)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def check_run(cfg: Any) -> None:
+    """The run-level keys a typo would otherwise stop deep inside training with a
+    traceback, checked before any data is read: ``trainer.max_steps`` (:func:`max_steps`),
+    ``seed`` (an integer), ``data.segment`` (``null`` or an integer >= 0; its upper bound
+    is the scene's and is checked once the segments are known) and ``trainer.n_rays`` (an
+    integer >= 1). One :class:`InputError` for the first that is wrong.
+
+    >>> check_run({"trainer": {"max_steps": 5, "n_rays": 256}, "seed": 0,
+    ...            "data": {"segment": None}})
+    >>> try:
+    ...     check_run({"trainer": {"max_steps": 5, "n_rays": 0}, "seed": 0, "data": {}})
+    ... except InputError as e:
+    ...     print(e.field)
+    trainer.n_rays
+    """
+    max_steps(cfg.get("trainer"))
+    seed = cfg.get("seed", 0)
+    if not _is_int(seed):
+        raise InputError("config", "seed", "an integer", seed)
+    segment = (cfg.get("data") or {}).get("segment")
+    if segment is not None and not (_is_int(segment) and segment >= 0):
+        raise InputError("config", "data.segment", "null (every segment) or an integer >= 0",
+                         segment)
+    n_rays = cfg["trainer"].get("n_rays", 256)
+    if not (_is_int(n_rays) and n_rays >= 1):
+        raise InputError("config", "trainer.n_rays", "an integer number of rays >= 1", n_rays)
 
 
 def paper_steps(steps: int, *, _root_: Any) -> int:

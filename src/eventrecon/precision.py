@@ -36,11 +36,17 @@ from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from typing import Any
 
+from eventrecon.errors import InputError
+
 __all__ = ["AUTO", "cpu_has_native_bf16", "image_autocast", "image_dtype", "mixed_dtype",
            "resolve_precision", "run_precision"]
 
 AUTO = "auto"
 _GPU = ("gpu", "cuda")
+#: The values of Lightning's ``precision`` (2.x), as written in a config.
+LIGHTNING_PRECISIONS = ("transformer-engine", "transformer-engine-float16", "16-true",
+                        "16-mixed", "bf16-true", "bf16-mixed", "32-true", "64-true", "64",
+                        "32", "16", "bf16")
 
 
 def cpu_has_native_bf16() -> bool:
@@ -73,8 +79,15 @@ def resolve_precision(value: str | int, accelerator: str = "cpu",
     '32-true'
     >>> resolve_precision("auto", "gpu"), resolve_precision("bf16-mixed", "cpu", False)
     ('16-mixed', 'bf16-mixed')
+
+    Raises:
+        InputError: ``value`` is neither ``auto`` nor one of :data:`LIGHTNING_PRECISIONS`.
     """
     if str(value) != AUTO:
+        if isinstance(value, bool) or str(value) not in LIGHTNING_PRECISIONS:
+            raise InputError("config", "trainer.lightning.precision",
+                             "auto or one of Lightning's: " + ", ".join(LIGHTNING_PRECISIONS),
+                             value)
         return value
     import torch
 

@@ -27,12 +27,13 @@ from eventrecon.build import (
     build_module,
     inspect_checkpoint,
     load_dataset,
+    optim_numbers,
     scene_properties,
 )
 from eventrecon.callbacks import HeldOutMonitor
 from eventrecon.checkpointing import AtomicCheckpointIO, remove_stale_temporaries
 from eventrecon.collapse import CollapseRule, collapse_reason
-from eventrecon.config import max_steps
+from eventrecon.config import check_run
 from eventrecon.data.batcher import Segment
 from eventrecon.data.datamodule import SegmentDataModule
 from eventrecon.data.properties import SceneProperties
@@ -201,7 +202,9 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
     folder evaluates the whole run, under a lock, once (a multirun over
     ``data.segment``, whose jobs share one folder, ends cross-faded).
     """
-    max_steps(cfg.trainer)                       # a bad budget fails before any data work
+    check_run(cfg)                               # typos fail before any data work
+    optim_numbers(cfg)
+    run_precision(cfg)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
