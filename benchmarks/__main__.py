@@ -22,6 +22,7 @@ from pathlib import Path
 
 import eventrecon
 from eventrecon.allocator import retain_freed_memory
+from eventrecon.errors import InputError
 
 log = logging.getLogger("benchmarks")
 
@@ -71,7 +72,11 @@ def main(argv: list[str] | None = None) -> int:
                      "RUN_DIR ...)", name, name)
             continue
         log.info("== %s ==", name)
-        module.main(args)
+        try:
+            module.main(args)
+        except InputError as e:                  # a missing run folder, a bad file: one line
+            log.error("%s", e)
+            return 2
     return 0
 
 

@@ -31,7 +31,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 
 from eventrecon import TIME_SPAN
 from eventrecon.build import load_dataset, load_segment, scene_properties
@@ -39,7 +38,7 @@ from eventrecon.colour import linear_to_srgb
 from eventrecon.data.batcher import background_linear
 from eventrecon.data.selection import heldout_split
 from eventrecon.data.types import SplitData
-from eventrecon.evaluate import encode, render_heldout
+from eventrecon.evaluate import encode, render_heldout, run_config
 from eventrecon.metrics import psnr
 from eventrecon.segments import run_segments
 from eventrecon.sim.raytrace import PixelRenderer
@@ -83,7 +82,7 @@ def score_cell(models, segments, split: SplitData, times_u: np.ndarray,
 
 def diagnose(run_dir: Path) -> dict[str, dict[str, float]]:
     """The 2 × 2 table (module docstring) of one run: ``{"train@frames": {...}, ...}``."""
-    cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
+    cfg = run_config(run_dir)
     ds = load_dataset(cfg)
     props = scene_properties(cfg, ds)
     segments = run_segments(cfg, props.segments)

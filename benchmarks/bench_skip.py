@@ -42,13 +42,12 @@ from pathlib import Path
 from unittest import mock
 
 import torch
-from omegaconf import OmegaConf
 from torch import Tensor
 
 from eventrecon.build import load_dataset, load_segment, scene_properties
 from eventrecon.data.batcher import RayBatcher
 from eventrecon.data.selection import heldout_split, training_split
-from eventrecon.evaluate import render_heldout, score_images
+from eventrecon.evaluate import render_heldout, run_config, score_images
 from eventrecon.fields.base import Field
 from eventrecon.render.occupancy import OccupancyGrid
 from eventrecon.render.occupancy_refined import RefinedGrid
@@ -161,7 +160,7 @@ def survey(run_dir: Path, thresholds: Sequence[float], grids: Sequence[str], n_b
            passes: int) -> list[dict]:
     """One row per grid setting (module docstring) for ``run_dir``'s first segment."""
     shapes = [parse_grid(text) for text in grids]      # a typo fails before any work
-    cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
+    cfg = run_config(run_dir)
     ds = load_dataset(cfg)
     props = scene_properties(cfg, ds)
     segments = run_segments(cfg, props.segments)

@@ -55,3 +55,29 @@ def test_running_every_benchmark_skips_those_that_read_finished_runs(caplog, mon
     assert {"heldout", "skip"} <= set(bm.available())
     assert sorted(ran) == sorted(set(bm.available()) - {"heldout", "skip"})
     assert "python -m benchmarks skip RUN_DIR" in caplog.text
+
+
+def test_a_run_folder_without_a_saved_config_is_one_error_line(caplog, tmp_path) -> None:
+    """``python -m benchmarks skip|heldout DIR`` on a folder that is not a run: one line
+    naming the missing ``.hydra/config.yaml`` and exit status 2, no traceback
+    (``eventrecon.evaluate.run_config``); ``image --run`` says the same."""
+    import logging
+
+    import pytest
+
+    import benchmarks.__main__ as bm
+    from benchmarks import bench_image
+
+    level = logging.getLogger("eventrecon").level
+    try:
+        for name in ("skip", "heldout"):
+            caplog.clear()
+            with caplog.at_level(logging.ERROR, logger="benchmarks"):
+                assert bm.main([name, str(tmp_path)]) == 2
+            errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+            assert errors == [f"{tmp_path / '.hydra' / 'config.yaml'}: <file>: expected the "
+                              "run's saved Hydra config"], name
+    finally:
+        logging.getLogger("eventrecon").setLevel(level)
+    with pytest.raises(SystemExit, match=r"config\.yaml: <file>: expected the run's saved"):
+        bench_image._config(tmp_path, [], tmp_path)

@@ -42,7 +42,7 @@ from eventrecon.taskprogress import TaskProgress
 
 __all__ = ["render_heldout", "encode", "score_images", "cheap_psnr", "evaluate_heldout",
            "write_renders", "render_and_score", "evaluate_models", "evaluate_run",
-           "run_device", "main"]
+           "run_config", "run_device", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -204,6 +204,15 @@ def _trained_precision(run_dir: Path, cfg: DictConfig) -> str | int:
         return run_precision(cfg)
 
 
+def run_config(run_dir: str | Path) -> DictConfig:
+    """A run folder's saved config (``run_dir/.hydra/config.yaml``), or one
+    :class:`InputError` naming the file when the folder holds none."""
+    cfg_path = Path(run_dir) / ".hydra" / "config.yaml"
+    if not cfg_path.is_file():
+        raise InputError(cfg_path, "<file>", "the run's saved Hydra config")
+    return OmegaConf.load(cfg_path)
+
+
 def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False) -> dict:
     """Re-evaluate a finished or interrupted run from its saved config and checkpoints.
 
@@ -216,10 +225,7 @@ def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False)
     beside the run's ``metrics.json``.
     """
     run_dir = Path(run_dir)
-    cfg_path = run_dir / ".hydra" / "config.yaml"
-    if not cfg_path.exists():
-        raise InputError(cfg_path, "<file>", "the run's saved Hydra config")
-    cfg = OmegaConf.load(cfg_path)
+    cfg = run_config(run_dir)
     ds = load_dataset(cfg)
     props = scene_properties(cfg, ds)
     heldout = heldout_split(ds)
