@@ -87,10 +87,8 @@ CASES = {
     "views_too_many": (["data.views=99"],
                        r"^config: data\.views: expected an integer in \[1, 6\] "
                        r"\(views in the dataset\), got 99$"),
-    "views_zero": (["data.views=0"], r"data\.views: expected an integer in \[1, 6\]"),
     "fps_above_dataset": (["data.fps=50"],
                           r"^config: data\.fps: expected at most the dataset's 5 FPS, got 50"),
-    "fps_zero": (["data.fps=0"], r"data\.fps: expected a positive frame rate, got 0"),
     "root_missing": (["data.root=/nonexistent/scene"],
                      r"^/nonexistent/scene: <folder>: expected an existing scene folder"),
     "ckpt_missing": (["ckpt_path=/nonexistent/x.ckpt"],
@@ -123,6 +121,21 @@ EARLY = {
                               r"^config: model\.optim\.weight_decay: expected a finite "
                               r"number >= 0, got -0\.1$"),
     "eps_zero": (["+model.optim.eps=0"], r"model\.optim\.eps: expected a finite number > 0"),
+    "views_zero": (["data.views=0"],
+                   r"^config: data\.views: expected null \(every view\) or an integer >= 1, "
+                   r"got 0$"),
+    "views_text": (["data.views=abc"], r"data\.views: .* got abc$"),
+    "fps_zero": (["data.fps=0"],
+                 r"^config: data\.fps: expected null \(every frame\) or a frame rate > 0, "
+                 r"got 0$"),
+    "fps_text": (["data.fps=abc"], r"data\.fps: .* got abc$"),
+    "neg_ratio_text": (["data.neg_ratio=abc"],
+                       r"^config: data\.neg_ratio: expected a fraction in \[0, 1\], got abc$"),
+    "window_reversed": (["data.window=[500,100]"],
+                        r"^config: data\.window: expected null or \[t0, t1\] time units with "
+                        r"0 <= t0 < t1 <= 1000, got \[500, 100\]$"),
+    "window_text": (["data.window=abc"], r"data\.window: .* got abc$"),
+    "window_beyond_the_span": (["data.window=[0,2000]"], r"data\.window: .* got \[0, 2000\]$"),
     "precision_unknown": (["trainer.lightning.precision=bogus"],
                           r"^config: trainer\.lightning\.precision: expected auto or one of "
                           r"Lightning's: .*bf16-mixed.*, got bogus$"),
