@@ -84,6 +84,12 @@ CASES = {
     "unknown_model_argument": (["+model.foo=1"],
                                r"^config: model: expected the arguments of "
                                r"eventrecon\.fields\.nerf\.NeRFField, got .*'foo'$"),
+    "model_integer_as_text": (["model.depth=abc"],
+                              r"^config: model\.depth: expected an integer, got abc$"),
+    "model_integer_as_fraction": (["model.width=2.5"],
+                                  r"^config: model\.width: expected an integer, got 2\.5$"),
+    "loss_weight_as_text": (["loss.w_rgb=abc"],
+                            r"^config: loss\.w_rgb: expected a number, got abc$"),
     "views_too_many": (["data.views=99"],
                        r"^config: data\.views: expected an integer in \[1, 6\] "
                        r"\(views in the dataset\), got 99$"),

@@ -81,13 +81,18 @@ class LossConfig:
     """Event contrast threshold θ in that log space."""
 
     def __post_init__(self) -> None:
+        def number(name: str) -> float:              # NaN for text or a bool: fails below
+            v = getattr(self, name)
+            return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) \
+                else math.nan
+
         for name in ("w_event", "w_acc", "w_rgb", "lam_sparsity", "sparsity_ramp"):
-            if getattr(self, name) < 0:
-                raise InputError("loss config", name, ">= 0", getattr(self, name))
-        if self.eps <= 0:
-            raise InputError("loss config", "eps", "> 0 (the guard of log)", self.eps)
-        if self.theta <= 0:
-            raise InputError("loss config", "theta", "> 0", self.theta)
+            if not number(name) >= 0:
+                raise InputError("loss config", name, "a number >= 0", getattr(self, name))
+        if not number("eps") > 0:
+            raise InputError("loss config", "eps", "a number > 0 (the guard of log)", self.eps)
+        if not number("theta") > 0:
+            raise InputError("loss config", "theta", "a number > 0", self.theta)
 
 
 def log_intensity(rgb: Tensor, eps: float) -> Tensor:

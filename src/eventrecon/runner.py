@@ -27,13 +27,11 @@ from eventrecon.build import (
     build_module,
     inspect_checkpoint,
     load_dataset,
-    optim_numbers,
     scene_properties,
 )
 from eventrecon.callbacks import HeldOutMonitor
 from eventrecon.checkpointing import AtomicCheckpointIO, remove_stale_temporaries
 from eventrecon.collapse import CollapseRule, collapse_reason
-from eventrecon.config import check_run
 from eventrecon.data.batcher import Segment
 from eventrecon.data.datamodule import SegmentDataModule
 from eventrecon.data.properties import SceneProperties
@@ -48,6 +46,7 @@ from eventrecon.module import EventNeRFModule
 from eventrecon.precision import run_precision
 from eventrecon.progress import Progress
 from eventrecon.render.occupancy import OccupancyUpdate
+from eventrecon.run_keys import check_run_keys
 from eventrecon.segments import run_segments, run_window, segment_config, segment_steps
 
 __all__ = ["run", "train_segment", "flat_hparams"]
@@ -202,9 +201,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
     folder evaluates the whole run, under a lock, once (a multirun over
     ``data.segment``, whose jobs share one folder, ends cross-faded).
     """
-    check_run(cfg)                               # typos fail before any data work
-    optim_numbers(cfg)
-    run_precision(cfg)
+    check_run_keys(cfg)                          # a typo fails before any data work
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()

@@ -1,0 +1,103 @@
+"""The run-level config keys, checked before a run reads or simulates any data.
+
+A typo in one of these used to stop a run deep inside with a traceback: Lightning's own
+checks of ``max_steps`` and ``precision``, AdamW's of the lr and weight decay,
+``int('abc')`` for a segment index, an ``IndexError`` for zero rays, a window error
+blamed on ``meta.json``. :func:`check_run_keys` gives one :class:`InputError` naming the
+key, what it expects and the value, before the run folder is made (a sweep records it
+as the job's failure). Keys whose bounds depend on the dataset (``data.views`` at most
+the dataset's views, ``data.segment`` below its segment count, ``data.fps`` at most its
+frame rate) get their upper bounds checked once the dataset is read.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from eventrecon import TIME_SPAN
+from eventrecon.build import optim_numbers
+from eventrecon.config import max_steps
+from eventrecon.errors import InputError
+from eventrecon.precision import run_precision
+
+__all__ = ["check_run_keys"]
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return (isinstance(value, (int, float)) and not isinstance(value, bool)
+            and math.isfinite(value))
+
+
+def _is_list(value: Any) -> bool:
+    return isinstance(value, Sequence) and not isinstance(value, str)
+
+
+def check_data_keys(data: Mapping[str, Any]) -> None:
+    """``data.segment`` (``null`` or an integer >= 0), ``views`` (``null`` or an integer
+    >= 1), ``fps`` (``null`` or a number > 0), ``neg_ratio`` (a number in ``[0, 1]``) and
+    ``window`` (``null`` or ``[t0, t1]`` time units, ``0 <= t0 < t1 <= 1000``).
+
+    >>> check_data_keys({"segment": None, "views": 3, "fps": 0.5, "neg_ratio": 0.9,
+    ...                  "window": [90, 210]})
+    >>> try:
+    ...     check_data_keys({"window": [500, 100]})
+    ... except InputError as e:
+    ...     print(e.field, e.got)
+    data.window [500, 100]
+    """
+    segment = data.get("segment")
+    if segment is not None and not (_is_int(segment) and segment >= 0):
+        raise InputError("config", "data.segment", "null (every segment) or an integer >= 0",
+                         segment)
+    views = data.get("views")
+    if views is not None and not (_is_int(views) and views >= 1):
+        raise InputError("config", "data.views", "null (every view) or an integer >= 1", views)
+    fps = data.get("fps")
+    if fps is not None and not (_is_number(fps) and fps > 0):
+        raise InputError("config", "data.fps", "null (every frame) or a frame rate > 0", fps)
+    neg = data.get("neg_ratio", 0.0)
+    if not (_is_number(neg) and 0.0 <= neg <= 1.0):
+        raise InputError("config", "data.neg_ratio", "a fraction in [0, 1]", neg)
+    window = data.get("window")
+    if window is not None and not (_is_list(window) and len(window) == 2
+                                   and all(_is_number(x) for x in window)
+                                   and 0.0 <= window[0] < window[1] <= TIME_SPAN):
+        raise InputError("config", "data.window",
+                         f"null or [t0, t1] time units with 0 <= t0 < t1 <= {TIME_SPAN:g}",
+                         list(window) if _is_list(window) else window)
+
+
+def check_run_keys(cfg: Mapping[str, Any]) -> None:
+    """Every key of the module docstring: ``trainer.max_steps``
+    (:func:`~eventrecon.config.max_steps`), ``seed`` (an integer), ``trainer.n_rays``
+    (an integer >= 1), the ``data`` keys (:func:`check_data_keys`), the optimiser's
+    numbers (:func:`~eventrecon.build.optim_numbers`) and the precision
+    (:func:`~eventrecon.precision.run_precision`). One :class:`InputError` for the first
+    that is wrong.
+
+    >>> from omegaconf import OmegaConf
+    >>> ok = {"trainer": {"max_steps": 5, "n_rays": 256, "lightning": {"precision": 32}},
+    ...       "seed": 0, "data": {}, "model": {"optim": {"lr": 1e-3}}}
+    >>> check_run_keys(OmegaConf.create(ok))
+    >>> try:
+    ...     check_run_keys(OmegaConf.merge(ok, {"trainer": {"n_rays": 0}}))
+    ... except InputError as e:
+    ...     print(e.field)
+    trainer.n_rays
+    """
+    max_steps(cfg.get("trainer"))
+    seed = cfg.get("seed", 0)
+    if not _is_int(seed):
+        raise InputError("config", "seed", "an integer", seed)
+    n_rays = cfg["trainer"].get("n_rays", 256)
+    if not (_is_int(n_rays) and n_rays >= 1):
+        raise InputError("config", "trainer.n_rays", "an integer number of rays >= 1", n_rays)
+    check_data_keys(cfg.get("data") or {})
+    optim_numbers(cfg)
+    run_precision(cfg)
