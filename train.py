@@ -147,9 +147,16 @@ def _share_cores_between_parallel_jobs() -> None:
 def _record_failure(cfg: DictConfig, out_dir: Path, err: BaseException) -> None:
     """Write ``metrics.json`` with ``status: failed`` so the report shows the failure."""
     from eventrecon.build import planned_run_info
-    from eventrecon.records import write_metrics
+    from eventrecon.records import METHOD_VERSION, write_metrics
 
-    info = planned_run_info(cfg)
+    try:
+        info = planned_run_info(cfg)
+    except Exception:  # noqa: BLE001 - the bad value may be one the record itself reads
+        info = {"scene": (cfg.get("scene") or {}).get("name") or cfg.data.get("root"),
+                "model": cfg.model.get("name"), "loss": cfg.loss.get("name"),
+                "views": cfg.data.get("views"), "fps": cfg.data.get("fps"),
+                "experiment": cfg.get("sweep_name"), "tag": cfg.get("tag"),
+                "seed": cfg.get("seed"), "method_version": METHOD_VERSION}
     write_metrics(out_dir, {**info, "status": "failed", "error": f"{type(err).__name__}: {err}"})
     log.error("job failed: %s", err)
     return None

@@ -58,7 +58,9 @@ def _config(repo: Path, overrides: list[str], run: Path | None) -> DictConfig:
     if run is not None:          # not eventrecon.evaluate.run_config: older commits lack it
         path = run / ".hydra" / "config.yaml"
         if not path.is_file():
-            raise SystemExit(f"{path}: <file>: expected the run's saved Hydra config")
+            from eventrecon.errors import InputError
+
+            raise InputError(path, "<file>", "the run's saved Hydra config")
         return OmegaConf.load(path)
     with initialize_config_dir(config_dir=str(repo / "conf"), version_base="1.3"):
         return compose(config_name="config", overrides=["logger=none", *overrides])

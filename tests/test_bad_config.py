@@ -10,6 +10,7 @@ key or list the valid choices). Together with ``test_bad_input.py`` (dataset fil
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -22,7 +23,7 @@ from omegaconf.errors import InterpolationResolutionError
 
 from eventrecon import build, runner
 from eventrecon.errors import InputError
-from eventrecon.segments import resolve_segments
+from eventrecon.segments import resolve_segments, segment_steps
 from eventrecon.sim.pipeline import ensure_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -102,9 +103,9 @@ CASES = {
                      r"got /nonexistent/x\.ckpt$"),
 }
 
-# keys checked before any data work (eventrecon.config.check_run, build.optim_numbers,
-# precision.resolve_precision): before these checks a typo gave a traceback from deep
-# inside (Lightning's max_steps and precision checks, AdamW's, int('abc'), an IndexError)
+# keys checked before any data work (eventrecon.run_keys.check_run_keys): before these
+# checks a typo gave a traceback from deep inside (Lightning's max_steps and precision
+# checks, AdamW's, int('abc'), an IndexError) or surfaced only after the data was read
 EARLY = {
     "max_steps_negative": (["trainer.max_steps=-5"],
                            r"^config: trainer\.max_steps: expected an integer number of steps "
@@ -142,6 +143,19 @@ EARLY = {
                         r"0 <= t0 < t1 <= 1000, got \[500, 100\]$"),
     "window_text": (["data.window=abc"], r"data\.window: .* got abc$"),
     "window_beyond_the_span": (["data.window=[0,2000]"], r"data\.window: .* got \[0, 2000\]$"),
+    "paper_steps_text": (["trainer.paper_steps=abc"],
+                         r"^config: trainer\.paper_steps: expected an integer number of "
+                         r"steps >= 1, got abc$"),
+    "schedule_unknown": (["trainer.schedule=bogus"],
+                         r"^config: trainer\.schedule: expected paper or compressed, got bogus$"),
+    "lr_end_factor_text": (["trainer.lr_end_factor=abc"], r"trainer\.lr_end_factor: .* got abc$"),
+    "betas_power_text": (["model.optim.betas_power=abc"],
+                         r"model\.optim\.betas_power: .* got abc$"),
+    "model_layers_text": (["model.depth=abc"], r"^config: model\.depth: expected an integer, "
+                                               r"got abc$"),
+    "loss_weight_text": (["loss.w_rgb=abc"], r"^config: loss\.w_rgb: expected a number, got abc$"),
+    "render_samples_text": (["render.n_coarse=abc"],
+                            r"^config: render\.n_coarse: expected an integer, got abc$"),
     "precision_unknown": (["trainer.lightning.precision=bogus"],
                           r"^config: trainer\.lightning\.precision: expected auto or one of "
                           r"Lightning's: .*bf16-mixed.*, got bogus$"),
@@ -155,11 +169,50 @@ def test_bad_config_value_is_one_line(case: str, data_dir: Path, tmp_path: Path)
 
 
 @pytest.mark.parametrize("case", sorted(EARLY))
-def test_a_bad_run_key_fails_before_the_run_folder_is_made(case: str, data_dir: Path,
-                                                           tmp_path: Path):
+def test_a_bad_run_key_fails_before_any_data_work(case: str, data_dir: Path, tmp_path: Path,
+                                                  monkeypatch):
+    """The error comes before the run reads (or would simulate) its dataset and before
+    it makes its folder: reading the data here fails the test."""
+    def no_data(*args, **kwargs):
+        raise AssertionError("the dataset was read before the bad key was found")
+
+    monkeypatch.setattr(runner, "load_dataset", no_data)
     overrides, pattern = EARLY[case]
     _raises_one_line(tiny_config(data_dir, *FAST, *overrides), tmp_path / "run", pattern)
     assert not (tmp_path / "run").exists()
+
+
+def test_whole_numbers_written_as_floats_and_an_empty_window_still_run(data_dir: Path):
+    """Hydra parses ``1e3`` as a float: a whole number of steps stays accepted (``int()``
+    took it before these checks); ``data.window=[]`` is no window, as before; a null
+    precision is Lightning's default."""
+    from eventrecon.run_keys import check_run_keys
+
+    cfg = tiny_config(data_dir, "trainer.max_steps=1e3", "data.window=[]",
+                      "trainer.lightning.precision=null")
+    check_run_keys(cfg)
+    assert segment_steps(cfg, 1) == 1000
+    with pytest.raises(InputError, match=r"trainer\.max_steps: .* got 1000\.5$"):
+        check_run_keys(tiny_config(data_dir, "trainer.max_steps=1000.5"))
+
+
+def test_a_sweep_records_a_failure_even_when_the_record_reads_the_bad_key(data_dir: Path,
+                                                                         tmp_path: Path):
+    """A sweep job whose precision is unknown: the failure record (``train.py``'s
+    ``_record_failure``) cannot compute the run's precision for its identity, and falls
+    back to the identity the config names, instead of a second error in the handler."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("train_entry", ROOT / "train.py")
+    train_entry = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(train_entry)
+    cfg = tiny_config(data_dir, *FAST, "trainer.lightning.precision=bogus")
+    with pytest.raises(InputError) as err:
+        runner.run(cfg, tmp_path / "run")
+    train_entry._record_failure(cfg, tmp_path, err.value)
+    rec = json.loads((tmp_path / "metrics.json").read_text())
+    assert rec["status"] == "failed" and rec["model"] == "nerf" and rec["loss"] == "full"
+    assert rec["error"].startswith("InputError: config: trainer.lightning.precision: ")
 
 
 def test_a_schedule_in_the_papers_steps_names_a_bad_step_budget(data_dir: Path):

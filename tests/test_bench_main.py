@@ -60,13 +60,14 @@ def test_running_every_benchmark_skips_those_that_read_finished_runs(caplog, mon
 def test_a_run_folder_without_a_saved_config_is_one_error_line(caplog, tmp_path) -> None:
     """``python -m benchmarks skip|heldout DIR`` on a folder that is not a run: one line
     naming the missing ``.hydra/config.yaml`` and exit status 2, no traceback
-    (``eventrecon.evaluate.run_config``); ``image --run`` says the same."""
+    (``eventrecon.evaluate.run_config``); ``image --run`` raises the same error."""
     import logging
 
     import pytest
 
     import benchmarks.__main__ as bm
     from benchmarks import bench_image
+    from eventrecon.errors import InputError
 
     level = logging.getLogger("eventrecon").level
     try:
@@ -79,5 +80,5 @@ def test_a_run_folder_without_a_saved_config_is_one_error_line(caplog, tmp_path)
                               "run's saved Hydra config"], name
     finally:
         logging.getLogger("eventrecon").setLevel(level)
-    with pytest.raises(SystemExit, match=r"config\.yaml: <file>: expected the run's saved"):
+    with pytest.raises(InputError, match=r"config\.yaml: <file>: expected the run's saved"):
         bench_image._config(tmp_path, [], tmp_path)

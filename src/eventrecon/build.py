@@ -65,11 +65,8 @@ DESCRIPTIVE_KEYS: tuple[str, ...] = ("name", "optim", "cpu_bf16")
 
 def instantiate(node: DictConfig | dict, where: str, base: type | None = None,
                 skip: tuple[str, ...] = (), **extra: Any) -> Any:
-    """``node._target_(**node, **extra)``, checked.
-
-    Keys in ``skip`` are not passed. Any failure to import the target,
-    a target that is not a ``base``, or an argument the class does not take is one
-    :class:`InputError` naming ``where`` (the config key).
+    """``node._target_(**node, **extra)``, checked (:func:`target_and_arguments`; an
+    argument the class does not take is one :class:`InputError` naming ``where`` too).
 
     >>> instantiate({"_target_": "eventrecon.losses.LossConfig", "name": "x", "w_rgb": 0.5},
     ...             "loss", skip=("name",)).w_rgb
@@ -79,6 +76,25 @@ def instantiate(node: DictConfig | dict, where: str, base: type | None = None,
     ... except InputError as e:
     ...     print(str(e)[:81])
     config: loss._target_: expected an importable class (a _target_ as in conf/loss/)
+    """
+    cls, kwargs = target_and_arguments(node, where, base, skip)
+    target = f"{cls.__module__}.{cls.__qualname__}"
+    try:
+        return cls(**kwargs, **extra)
+    except TypeError as e:  # an argument the class does not take (`+model.foo=1`)
+        raise InputError("config", where, f"the arguments of {target}", str(e)) from None
+
+
+def target_and_arguments(node: DictConfig | dict, where: str, base: type | None = None,
+                         skip: tuple[str, ...] = ()) -> tuple[type, dict[str, Any]]:
+    """The class ``node._target_`` names and the arguments ``node`` gives it (resolved;
+    keys in ``skip`` left out), checked without building anything: a failure to resolve
+    or import, a target that is not a ``base``, or a value whose type cannot be the
+    ``int`` / ``float`` / ``bool`` its constructor declares (:func:`_check_scalar_types`)
+    is one :class:`InputError` naming ``where`` (the config key).
+
+    >>> target_and_arguments({"_target_": "eventrecon.losses.LossConfig", "w_rgb": 1}, "loss")
+    (<class 'eventrecon.losses.LossConfig'>, {'w_rgb': 1})
     """
     try:
         kwargs = (OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig)
@@ -104,10 +120,7 @@ def instantiate(node: DictConfig | dict, where: str, base: type | None = None,
     if not isinstance(cls, type) or (base is not None and not issubclass(cls, base)):
         raise InputError("config", f"{where}._target_", expect, target)
     _check_scalar_types(cls, kwargs, where)
-    try:
-        return cls(**kwargs, **extra)
-    except TypeError as e:  # an argument the class does not take (`+model.foo=1`)
-        raise InputError("config", where, f"the arguments of {target}", str(e)) from None
+    return cls, kwargs
 
 
 #: What a config value of an ``int``, ``float`` or ``bool`` argument must be, by annotation.

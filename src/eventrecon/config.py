@@ -34,38 +34,63 @@ from omegaconf import OmegaConf
 from eventrecon.errors import InputError
 from eventrecon.naming import dataset_name
 
-__all__ = ["register_resolvers", "paper_steps", "run_data_name", "max_steps", "SCHEDULES"]
+__all__ = ["register_resolvers", "paper_steps", "run_data_name", "max_steps", "schedule",
+           "SCHEDULES"]
 
 #: ``trainer.schedule`` values.
 SCHEDULES: tuple[str, ...] = ("paper", "compressed")
 
 
+def _whole(value: Any) -> int | None:
+    """``value`` as an int when it is a whole number (``1e4`` parses as a float), else
+    ``None`` (a bool, text, a fraction, ``null``)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    return int(value) if float(value).is_integer() else None
+
+
 def max_steps(trainer: Any) -> int:
-    """``trainer.max_steps``, checked: an integer number of steps ``>= 1`` (``trainer`` the
+    """``trainer.max_steps``, checked: a whole number of steps ``>= 1`` (``trainer`` the
     config's ``trainer`` section), else one :class:`InputError` naming it.
 
-    >>> max_steps({"max_steps": 9000})
-    9000
+    >>> max_steps({"max_steps": 9000}), max_steps({"max_steps": 1e4})
+    (9000, 10000)
     """
     value = trainer.get("max_steps") if trainer is not None else None
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+    n = _whole(value)
+    if n is None or n < 1:
         raise InputError("config", "trainer.max_steps", "an integer number of steps >= 1",
-                         "missing" if value is None else value)
-    return int(value)
+                         "null" if value is None else value)
+    return n
+
+
+def schedule(trainer: Any) -> tuple[str, int]:
+    """``(trainer.schedule, trainer.paper_steps)``, checked: one of :data:`SCHEDULES`
+    (default ``paper``) and a whole number of steps ``>= 1`` (default 150 000).
+
+    >>> schedule({"schedule": "compressed", "paper_steps": 150000})
+    ('compressed', 150000)
+    """
+    name = trainer.get("schedule", "paper") if trainer is not None else "paper"
+    if name not in SCHEDULES:
+        raise InputError("config", "trainer.schedule", " or ".join(SCHEDULES), name)
+    value = trainer.get("paper_steps", 150000) if trainer is not None else 150000
+    n = _whole(value)
+    if n is None or n < 1:
+        raise InputError("config", "trainer.paper_steps", "an integer number of steps >= 1",
+                         "null" if value is None else value)
+    return name, n
 
 
 def paper_steps(steps: int, *, _root_: Any) -> int:
     """``steps`` of the paper's run, as ``trainer.schedule`` says (module docstring)."""
     trainer = _root_.get("trainer")
+    kind, paper = schedule(trainer)
     total = max_steps(trainer)
-    schedule = str(trainer.get("schedule", "paper"))
-    paper = int(trainer.get("paper_steps", 150000))
-    if schedule not in SCHEDULES:
-        raise InputError("config", "trainer.schedule", " or ".join(SCHEDULES), schedule)
     n = int(steps)
     if n < 0:
         raise InputError("config", "${paper_steps:...}", "a number of steps >= 0", steps)
-    if schedule == "paper" or n == 0:
+    if kind == "paper" or n == 0:
         return n
     return max(1, int(round(n * total / paper)))
 

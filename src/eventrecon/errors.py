@@ -1,8 +1,12 @@
-"""One error type for bad input: it names the file, the field and the expectation."""
+"""One error type for bad input: it names the file, the field and the expectation; and
+:func:`as_number`, the validators' reading of a value that should be a number."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
+
+__all__ = ["InputError", "as_number"]
 
 
 class InputError(ValueError):
@@ -24,3 +28,19 @@ class InputError(ValueError):
         if got is not None:
             msg += f", got {got}"
         super().__init__(msg)
+
+
+def as_number(value: object) -> float:
+    """``value`` as a float; NaN (which fails every range check) for a bool, ``None`` or
+    anything ``float`` refuses, so a validator raises one :class:`InputError` for both a
+    value out of range and a value that is no number.
+
+    >>> as_number(3), as_number("abc"), as_number(True)
+    (3.0, nan, nan)
+    """
+    if isinstance(value, bool):
+        return math.nan
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return math.nan

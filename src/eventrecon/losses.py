@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError
+from eventrecon.errors import InputError, as_number
 
 __all__ = [
     "LossConfig",
@@ -81,17 +81,14 @@ class LossConfig:
     """Event contrast threshold θ in that log space."""
 
     def __post_init__(self) -> None:
-        def number(name: str) -> float:              # NaN for text or a bool: fails below
-            v = getattr(self, name)
-            return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) \
-                else math.nan
-
         for name in ("w_event", "w_acc", "w_rgb", "lam_sparsity", "sparsity_ramp"):
-            if not number(name) >= 0:
-                raise InputError("loss config", name, "a number >= 0", getattr(self, name))
-        if not number("eps") > 0:
+            x = as_number(getattr(self, name))
+            if not (math.isfinite(x) and x >= 0):
+                raise InputError("config", f"loss.{name}", "a finite number >= 0",
+                                 getattr(self, name))
+        if not as_number(self.eps) > 0:       # eps and theta come from the data's settings
             raise InputError("loss config", "eps", "a number > 0 (the guard of log)", self.eps)
-        if not number("theta") > 0:
+        if not as_number(self.theta) > 0:
             raise InputError("loss config", "theta", "a number > 0", self.theta)
 
 

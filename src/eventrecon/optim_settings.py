@@ -11,24 +11,12 @@ them into the step's :class:`~eventrecon.module.StepConfig`.
 from __future__ import annotations
 
 import math
-from typing import Any
 
 from omegaconf import DictConfig, OmegaConf  # noqa: F401 - OmegaConf: the doctests
 
-from eventrecon.errors import InputError
+from eventrecon.errors import InputError, as_number
 
 __all__ = ["adam_betas", "lr_decay_start", "lr_end_factor", "lr_warmup", "optim_numbers"]
-
-
-def _as_number(value: Any) -> float:
-    """``value`` as a float; NaN (which fails every range check) for a bool or a
-    non-number, so a validator raises one :class:`InputError` for both."""
-    if isinstance(value, bool):
-        return math.nan
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return math.nan
 
 
 def lr_end_factor(cfg: DictConfig) -> float:
@@ -44,7 +32,7 @@ def lr_end_factor(cfg: DictConfig) -> float:
     trainer.lr_end_factor
     """
     value = cfg.trainer.get("lr_end_factor", 1.0)
-    f = _as_number(value)
+    f = as_number(value)
     if not 0.0 < f <= 1.0:
         raise InputError("config", "trainer.lr_end_factor", "a number in (0, 1]", value)
     return f
@@ -82,7 +70,7 @@ def lr_decay_start(cfg: DictConfig) -> float:
     trainer.lr_decay_start
     """
     value = cfg.trainer.get("lr_decay_start", 0.0)
-    a = _as_number(value)
+    a = as_number(value)
     if not 0.0 <= a < 1.0:
         raise InputError("config", "trainer.lr_decay_start", "a number in [0, 1)", value)
     return a
@@ -106,7 +94,7 @@ def optim_numbers(cfg: DictConfig) -> tuple[float, float, float]:
     for key, default, low in (("lr", 1e-3, "> 0"), ("weight_decay", 0.0, ">= 0"),
                               ("eps", 1e-8, "> 0")):
         value = optim.get(key, default)
-        x = _as_number(value)
+        x = as_number(value)
         if not (math.isfinite(x) and (x > 0.0 if low == "> 0" else x >= 0.0)):
             raise InputError("config", f"model.optim.{key}", f"a finite number {low}", value)
         out.append(x)
@@ -140,7 +128,7 @@ def adam_betas(cfg: DictConfig) -> tuple[float, float]:
         b1 = b2 = math.nan
     if not (0.0 <= b1 < 1.0 and 0.0 <= b2 < 1.0):
         raise InputError("config", "model.optim.betas", "two numbers in [0, 1)", betas)
-    k = _as_number(power)
+    k = as_number(power)
     if not k > 0.0 or not math.isfinite(k):
         raise InputError("config", "model.optim.betas_power", "a number > 0", power)
     return b1 ** k, b2 ** k

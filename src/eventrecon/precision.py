@@ -81,10 +81,12 @@ def resolve_precision(value: str | int, accelerator: str = "cpu",
     ('16-mixed', 'bf16-mixed')
 
     Raises:
-        InputError: ``value`` is neither ``auto`` nor one of :data:`LIGHTNING_PRECISIONS`.
+        InputError: ``value`` is neither ``auto``, ``None`` (Lightning's default) nor one
+            of :data:`LIGHTNING_PRECISIONS`.
     """
     if str(value) != AUTO:
-        if isinstance(value, bool) or str(value) not in LIGHTNING_PRECISIONS:
+        if value is not None and (isinstance(value, bool)
+                                  or str(value) not in LIGHTNING_PRECISIONS):
             raise InputError("config", "trainer.lightning.precision",
                              "auto or one of Lightning's: " + ", ".join(LIGHTNING_PRECISIONS),
                              value)

@@ -2,12 +2,14 @@
 
 A typo in one of these used to stop a run deep inside with a traceback: Lightning's own
 checks of ``max_steps`` and ``precision``, AdamW's of the lr and weight decay,
-``int('abc')`` for a segment index, an ``IndexError`` for zero rays, a window error
-blamed on ``meta.json``. :func:`check_run_keys` gives one :class:`InputError` naming the
-key, what it expects and the value, before the run folder is made (a sweep records it
-as the job's failure). Keys whose bounds depend on the dataset (``data.views`` at most
-the dataset's views, ``data.segment`` below its segment count, ``data.fps`` at most its
-frame rate) get their upper bounds checked once the dataset is read.
+``int('abc')`` for a segment index or a layer count, an ``IndexError`` for zero rays, a
+window error blamed on ``meta.json``. :func:`check_run_keys` gives one
+:class:`InputError` naming the key, what it expects and the value, before the run reads
+its dataset (a scene not yet simulated would be simulated first) or writes anything
+(under ``train.py`` Hydra has made the job's folder already; a sweep records the failure
+there). Keys whose bounds depend on the dataset (``data.views`` at most the dataset's
+views, ``data.segment`` below its segment count, ``data.fps`` at most its frame rate)
+get their upper bounds checked once it is read.
 """
 
 from __future__ import annotations
@@ -17,12 +19,22 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from eventrecon import TIME_SPAN
-from eventrecon.build import optim_numbers
-from eventrecon.config import max_steps
-from eventrecon.errors import InputError
+from eventrecon.build import DESCRIPTIVE_KEYS, target_and_arguments
+from eventrecon.config import max_steps, schedule
+from eventrecon.errors import InputError, as_number
+from eventrecon.fields.base import Field
+from eventrecon.losses import LossConfig
+from eventrecon.optim_settings import (
+    adam_betas,
+    lr_decay_start,
+    lr_end_factor,
+    lr_warmup,
+    optim_numbers,
+)
 from eventrecon.precision import run_precision
+from eventrecon.render.volume import Renderer
 
-__all__ = ["check_run_keys"]
+__all__ = ["check_run_keys", "check_data_keys"]
 
 
 def _is_int(value: Any) -> bool:
@@ -30,8 +42,7 @@ def _is_int(value: Any) -> bool:
 
 
 def _is_number(value: Any) -> bool:
-    return (isinstance(value, (int, float)) and not isinstance(value, bool)
-            and math.isfinite(value))
+    return math.isfinite(as_number(value))
 
 
 def _is_list(value: Any) -> bool:
@@ -63,8 +74,9 @@ def check_data_keys(data: Mapping[str, Any]) -> None:
         raise InputError("config", "data.fps", "null (every frame) or a frame rate > 0", fps)
     neg = data.get("neg_ratio", 0.0)
     if not (_is_number(neg) and 0.0 <= neg <= 1.0):
-        raise InputError("config", "data.neg_ratio", "a fraction in [0, 1]", neg)
-    window = data.get("window")
+        raise InputError("config", "data.neg_ratio", "a fraction in [0, 1]",
+                         "null" if neg is None else neg)
+    window = data.get("window") or None               # [] as null: no window, as before
     if window is not None and not (_is_list(window) and len(window) == 2
                                    and all(_is_number(x) for x in window)
                                    and 0.0 <= window[0] < window[1] <= TIME_SPAN):
@@ -74,12 +86,17 @@ def check_data_keys(data: Mapping[str, Any]) -> None:
 
 
 def check_run_keys(cfg: Mapping[str, Any]) -> None:
-    """Every key of the module docstring: ``trainer.max_steps``
-    (:func:`~eventrecon.config.max_steps`), ``seed`` (an integer), ``trainer.n_rays``
-    (an integer >= 1), the ``data`` keys (:func:`check_data_keys`), the optimiser's
-    numbers (:func:`~eventrecon.build.optim_numbers`) and the precision
-    (:func:`~eventrecon.precision.run_precision`). One :class:`InputError` for the first
-    that is wrong.
+    """Every key of the module docstring, the first wrong one as one :class:`InputError`:
+
+    - ``trainer``: ``schedule`` and ``paper_steps`` (:func:`~eventrecon.config.schedule`),
+      ``max_steps`` (:func:`~eventrecon.config.max_steps`), ``n_rays`` (an integer >= 1),
+      the lr schedule (:mod:`eventrecon.optim_settings`) and the precision
+      (:func:`~eventrecon.precision.run_precision`);
+    - ``seed`` (an integer) and the ``data`` keys (:func:`check_data_keys`);
+    - ``model.optim``'s numbers and betas (:mod:`eventrecon.optim_settings`);
+    - ``model``, ``loss`` and ``render``: their targets import and their values have the
+      types their constructors declare (:func:`~eventrecon.build.target_and_arguments`,
+      nothing built).
 
     >>> from omegaconf import OmegaConf
     >>> ok = {"trainer": {"max_steps": 5, "n_rays": 256, "lightning": {"precision": 32}},
@@ -91,13 +108,25 @@ def check_run_keys(cfg: Mapping[str, Any]) -> None:
     ...     print(e.field)
     trainer.n_rays
     """
-    max_steps(cfg.get("trainer"))
+    trainer = cfg.get("trainer")
+    schedule(trainer)
+    max_steps(trainer)
     seed = cfg.get("seed", 0)
     if not _is_int(seed):
         raise InputError("config", "seed", "an integer", seed)
-    n_rays = cfg["trainer"].get("n_rays", 256)
+    n_rays = trainer.get("n_rays", 256)
     if not (_is_int(n_rays) and n_rays >= 1):
         raise InputError("config", "trainer.n_rays", "an integer number of rays >= 1", n_rays)
     check_data_keys(cfg.get("data") or {})
     optim_numbers(cfg)
+    adam_betas(cfg)
+    lr_end_factor(cfg)
+    lr_warmup(cfg)
+    lr_decay_start(cfg)
     run_precision(cfg)
+    for key, base, skip in (("model", Field, DESCRIPTIVE_KEYS),
+                            ("loss", LossConfig, DESCRIPTIVE_KEYS),
+                            ("render", Renderer, ("image_autocast",))):
+        node = cfg.get(key)
+        if node is not None and node.get("_target_"):
+            target_and_arguments(node, key, base, skip)
