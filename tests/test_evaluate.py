@@ -120,6 +120,7 @@ def test_images_render_in_the_precision_the_run_trained_with(run_dir: Path, tmp_
     (["run=/nowhere"], "/nowhere/.hydra/config.yaml: <file>: expected the run's saved Hydra"),
     (["run=x", "ckpt=first"], "ckpt: expected last or best, got first"),
     (["run=x", "colour=true"], "usage: python -m eventrecon.evaluate"),
+    (["run=x", "color_correct=ture"], "color_correct: expected true or false, got ture"),
 ])
 def test_bad_arguments_are_one_line(argv: list[str], expected: str, caplog):
     with caplog.at_level(logging.ERROR):

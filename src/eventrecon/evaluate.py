@@ -265,9 +265,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.get("ckpt", "last") not in ("last", "best"):
         log.error("ckpt: expected last or best, got %s", args["ckpt"])
         return 2
+    colour = args.get("color_correct", "false").lower()
+    if colour not in ("true", "false"):
+        log.error("color_correct: expected true or false, got %s", args["color_correct"])
+        return 2
     try:
         metrics = evaluate_run(Path(args["run"]), ckpt=args.get("ckpt", "last"),
-                               color_correct=args.get("color_correct", "false").lower() == "true")
+                               color_correct=colour == "true")
     except InputError as e:
         log.error("%s", e)
         return 2
