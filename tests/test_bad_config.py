@@ -63,6 +63,9 @@ CASES = {
     "threshold_zero": (["scene.threshold=0"],
                        r"^scene spheres: threshold: expected a contrast threshold > 0, got 0\.0$"),
     "threshold_negative": (["scene.threshold=-0.2"], r"threshold: expected a contrast threshold"),
+    "width_zero": (["scene.width=0"], r"^scene spheres: width: expected an integer > 0, got 0$"),
+    "duration_text": (["scene.duration_s=abc"],
+                      r"^scene spheres: duration_s: expected a number > 0, got 'abc'$"),
     "negative_shot_noise": (["scene.events=[{name:shot_noise,rate_hz:-1}]"],
                             r"events\[0\]\.rate_hz: expected a rate ≥ 0 Hz per pixel, "
                             r"got -1\.0$"),

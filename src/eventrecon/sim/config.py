@@ -21,7 +21,7 @@ import numpy as np
 
 from eventrecon.errors import InputError
 
-__all__ = ["get", "get_vec", "effect_rng", "config_hash", "to_plain", "MISSING"]
+__all__ = ["get", "get_vec", "positive", "effect_rng", "config_hash", "to_plain", "MISSING"]
 
 #: Marker for a required field (no default).
 MISSING: Any = object()
@@ -54,28 +54,43 @@ def get(cfg: Mapping, key: str, kind: type | tuple[type, ...], where: str, prefi
         where: the file or scene the config came from (first part of the error).
         default: value when the key is absent (required when :data:`MISSING`).
         check: predicate on the value; ``False`` raises with ``expect``.
+        expect: the expectation an error states; by default the type's name (``an
+            integer``) and the check's ``rule`` attribute (``> 0``, :func:`positive`).
 
     >>> get({"theta": 0.5}, "theta", float, "scene x", check=lambda v: v > 0)
     0.5
     """
     field = f"{prefix}{key}"
+    if expect is None:                           # "an integer", "a number > 0"
+        name = _kind_name(kind)
+        expect = f"{'an' if name[0] in 'aeiou' else 'a'} {name}"
+        if check is not None:
+            expect += f" {getattr(check, 'rule', 'that passes its check')}"
     if not isinstance(cfg, Mapping):
         raise InputError(where, prefix.rstrip(".") or "<root>", "a mapping", type(cfg).__name__)
     if key not in cfg or cfg[key] is None:
         if default is MISSING:
-            raise InputError(where, field, expect or f"a {_kind_name(kind)}", "missing")
+            raise InputError(where, field, expect, "missing")
         return default
     value = cfg[key]
     kinds = kind if isinstance(kind, tuple) else (kind,)
     if float in kinds and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
     if isinstance(value, bool) and bool not in kinds:
-        raise InputError(where, field, expect or f"a {_kind_name(kind)}", repr(value))
+        raise InputError(where, field, expect, repr(value))
     if not isinstance(value, kinds):
-        raise InputError(where, field, expect or f"a {_kind_name(kind)}", repr(value))
+        raise InputError(where, field, expect, repr(value))
     if check is not None and not check(value):
-        raise InputError(where, field, expect or "a valid value", repr(value))
+        raise InputError(where, field, expect, repr(value))
     return value
+
+
+def positive(v: float) -> bool:
+    """The check ``v > 0`` (its ``rule`` is what an error says it expects)."""
+    return v > 0
+
+
+positive.rule = "> 0"  # type: ignore[attr-defined]
 
 
 def get_vec(cfg: Mapping, key: str, n: int, where: str, prefix: str = "",

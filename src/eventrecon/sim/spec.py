@@ -39,6 +39,7 @@ from eventrecon import TIME_SPAN
 from eventrecon.errors import InputError
 from eventrecon.render.cameras import Cameras, load_camdict, ring_rig
 from eventrecon.sim.config import get, get_vec, to_plain
+from eventrecon.sim.config import positive as _pos
 from eventrecon.sim.event_effects import EVENT_EFFECTS
 from eventrecon.sim.frame_effects import FRAME_EFFECTS
 from eventrecon.sim.registry import Effect
@@ -82,10 +83,6 @@ class SceneSpec:
     def bayer(self) -> bool:
         """Colour event pixels (the ``bayer`` event effect is listed)."""
         return any(e.name == "bayer" for e in self.event_effects)
-
-
-def _pos(v: float) -> bool:
-    return v > 0
 
 
 def parse_spec(cfg: object, where: str | None = None) -> SceneSpec:
