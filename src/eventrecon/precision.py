@@ -38,8 +38,8 @@ from typing import Any
 
 from eventrecon.errors import InputError
 
-__all__ = ["AUTO", "cpu_has_native_bf16", "image_autocast", "image_dtype", "mixed_dtype",
-           "resolve_precision", "run_precision"]
+__all__ = ["AUTO", "LIGHTNING_PRECISIONS", "cpu_has_native_bf16", "image_autocast",
+           "image_dtype", "mixed_dtype", "resolve_precision", "run_precision"]
 
 AUTO = "auto"
 _GPU = ("gpu", "cuda")

@@ -61,28 +61,28 @@ def get(cfg: Mapping, key: str, kind: type | tuple[type, ...], where: str, prefi
     0.5
     """
     field = f"{prefix}{key}"
-    if expect is None:                           # "an integer", "a number > 0"
-        name = _kind_name(kind)
-        expect = f"{'an' if name[0] in 'aeiou' else 'a'} {name}"
-        if check is not None:
-            expect += f" {getattr(check, 'rule', 'that passes its check')}"
     if not isinstance(cfg, Mapping):
         raise InputError(where, prefix.rstrip(".") or "<root>", "a mapping", type(cfg).__name__)
     if key not in cfg or cfg[key] is None:
         if default is MISSING:
-            raise InputError(where, field, expect, "missing")
+            raise InputError(where, field, expect or _expected(kind, check), "missing")
         return default
     value = cfg[key]
     kinds = kind if isinstance(kind, tuple) else (kind,)
     if float in kinds and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
-    if isinstance(value, bool) and bool not in kinds:
-        raise InputError(where, field, expect, repr(value))
-    if not isinstance(value, kinds):
-        raise InputError(where, field, expect, repr(value))
-    if check is not None and not check(value):
-        raise InputError(where, field, expect, repr(value))
+    if ((isinstance(value, bool) and bool not in kinds) or not isinstance(value, kinds)
+            or (check is not None and not check(value))):
+        raise InputError(where, field, expect or _expected(kind, check), repr(value))
     return value
+
+
+def _expected(kind: type | tuple[type, ...], check: Callable[[Any], bool] | None) -> str:
+    """The default expectation of :func:`get`: ``an integer``, ``a number > 0`` (the
+    check's ``rule``, :func:`positive`)."""
+    name = _kind_name(kind)
+    text = f"{'an' if name[0] in 'aeiou' else 'a'} {name}"
+    return text if check is None else f"{text} {getattr(check, 'rule', 'that passes its check')}"
 
 
 def positive(v: float) -> bool:

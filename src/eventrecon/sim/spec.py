@@ -38,8 +38,7 @@ import numpy as np
 from eventrecon import TIME_SPAN
 from eventrecon.errors import InputError
 from eventrecon.render.cameras import Cameras, load_camdict, ring_rig
-from eventrecon.sim.config import get, get_vec, to_plain
-from eventrecon.sim.config import positive as _pos
+from eventrecon.sim.config import get, get_vec, positive, to_plain
 from eventrecon.sim.event_effects import EVENT_EFFECTS
 from eventrecon.sim.frame_effects import FRAME_EFFECTS
 from eventrecon.sim.registry import Effect
@@ -94,7 +93,7 @@ def parse_spec(cfg: object, where: str | None = None) -> SceneSpec:
     name = get(raw, "name", str, where or "scene")
     w = where or f"scene {name}"
     cyl_raw = get(raw, "cylinder", Mapping, w, default={})
-    cyl = {"radius": get(cyl_raw, "radius", float, w, "cylinder.", 0.5, _pos),
+    cyl = {"radius": get(cyl_raw, "radius", float, w, "cylinder.", 0.5, positive),
            "y_min": get(cyl_raw, "y_min", float, w, "cylinder.", -0.75),
            "y_max": get(cyl_raw, "y_max", float, w, "cylinder.", 0.25)}
     if cyl["y_min"] >= cyl["y_max"]:
@@ -108,27 +107,27 @@ def parse_spec(cfg: object, where: str | None = None) -> SceneSpec:
     spec = SceneSpec(
         name=name,
         seed=get(raw, "seed", int, w, default=0),
-        width=get(raw, "width", int, w, default=96, check=_pos),
-        height=get(raw, "height", int, w, default=72, check=_pos),
-        duration_s=get(raw, "duration_s", float, w, default=2.0, check=_pos),
-        rgb_fps=get(raw, "rgb_fps", float, w, default=5.0, check=_pos),
-        eval_fps=get(raw, "eval_fps", float, w, default=5.0, check=_pos),
-        tonemap_eps=get(raw, "tonemap_eps", float, w, default=1e-2, check=_pos),
-        threshold=get(raw, "threshold", float, w, default=0.5, check=_pos,
+        width=get(raw, "width", int, w, default=96, check=positive),
+        height=get(raw, "height", int, w, default=72, check=positive),
+        duration_s=get(raw, "duration_s", float, w, default=2.0, check=positive),
+        rgb_fps=get(raw, "rgb_fps", float, w, default=5.0, check=positive),
+        eval_fps=get(raw, "eval_fps", float, w, default=5.0, check=positive),
+        tonemap_eps=get(raw, "tonemap_eps", float, w, default=1e-2, check=positive),
+        threshold=get(raw, "threshold", float, w, default=0.5, check=positive,
                       expect="a contrast threshold > 0"),
         decay=get(raw, "decay", float, w, default=1.0, check=lambda v: 0 < v <= 1,
                   expect="a decay in (0, 1]"),
         cylinder=cyl, segments=[[float(a), float(b)] for a, b in segs],
         max_log_step=get(raw, "max_log_step", float, w, default=0.25,
                          check=lambda v: 0 < v <= 1, expect="a fraction of θ in (0, 1]"),
-        max_step=get(raw, "max_step", float, w, default=2.0, check=_pos) / TIME_SPAN,
-        min_step=get(raw, "min_step", float, w, default=1e-3, check=_pos) / TIME_SPAN,
-        supersample=get(raw, "supersample", int, w, default=1, check=_pos),
+        max_step=get(raw, "max_step", float, w, default=2.0, check=positive) / TIME_SPAN,
+        min_step=get(raw, "min_step", float, w, default=1e-3, check=positive) / TIME_SPAN,
+        supersample=get(raw, "supersample", int, w, default=1, check=positive),
         frame_supersample=get(raw, "frame_supersample", int, w,
-                              default=get(raw, "supersample", int, w, default=1, check=_pos),
-                              check=_pos),
+                              default=get(raw, "supersample", int, w, default=1, check=positive),
+                              check=positive),
         background_exposures=get(raw, "background_exposures", int, w, default=32,
-                                 check=_pos, expect="a number of exposures ≥ 1"),
+                                 check=positive, expect="a number of exposures ≥ 1"),
         rig=dict(rig), scene=parse_scene(raw, w),
         event_effects=EVENT_EFFECTS.build(raw.get("events"), w),
         frame_effects=FRAME_EFFECTS.build(raw.get("frames"), w),
@@ -177,8 +176,8 @@ def build_cameras(spec: SceneSpec) -> tuple[Cameras, Cameras]:
             raise InputError(w, "rig.n_heldout", f"< the {len(cams)} views of the camdict", n_held)
         n_tr = len(cams) - n_held
         return cams.select(range(n_tr)), cams.select(range(n_tr, len(cams)))
-    n_tr = get(r, "n_train", int, w, "rig.", 6, _pos)
-    kw = dict(radius=get(r, "radius", float, w, "rig.", 2.5, _pos),
+    n_tr = get(r, "n_train", int, w, "rig.", 6, positive)
+    kw = dict(radius=get(r, "radius", float, w, "rig.", 2.5, positive),
               elevation_deg=get(r, "elevation_deg", float, w, "rig.", 15.0),
               fov_deg=get(r, "fov_deg", float, w, "rig.", 32.0, lambda v: 0 < v < 180),
               target=tuple(get_vec(r, "target", 3, w, "rig.", (0.0, -0.25, 0.0))),
