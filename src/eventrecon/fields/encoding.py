@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import lightning.pytorch as pl
 import torch
@@ -37,7 +37,8 @@ from torch import Tensor, nn
 from eventrecon.errors import InputError
 
 __all__ = ["PositionalEncoding", "band_window", "BandAnnealing", "grouped_layout",
-           "encode_grouped", "full_precision_products"]
+           "encode_grouped", "full_precision_products", "ActiveColumns", "active_columns",
+           "encode_active"]
 
 
 def band_window(n_bands: int, step: float, anneal_steps: int) -> list[float]:
@@ -249,6 +250,57 @@ def _active_runs(window: Sequence[float]) -> list[tuple[int, int]]:
         else:
             runs.append((j, j + 1))
     return runs
+
+
+class ActiveColumns(NamedTuple):
+    """The grouped layout's columns a band window leaves on (:func:`active_columns`), for
+    ``k`` angle columns of non-zero weight out of ``F``."""
+
+    columns: Tensor    # [ΣD + 2k] int64: the grouped columns kept, raw, then sin, then cos
+    source: Tensor     # [k] int64: each kept angle's input column
+    freq: Tensor       # [k]: its 2^k
+    window: Tensor     # [k]: its band weight
+
+
+def active_columns(freqs: Tensor, weights: Sequence[float]) -> ActiveColumns:
+    """The columns of :func:`encode_grouped`'s output that are not zero for every input
+    under the band weights ``weights`` (``F`` floats, one per angle column of ``freqs
+    [ΣD, F]``): the ``ΣD`` raw inputs and the ``sin`` and ``cos`` of each angle whose
+    weight is not 0. Built on ``freqs``' device.
+
+    >>> a = active_columns(grouped_layout([PositionalEncoding(1, 3, 0)])[1], [1.0, 0.5, 0.0])
+    >>> a.columns.tolist(), a.source.tolist(), a.freq.tolist(), a.window.tolist()
+    ([0, 1, 2, 4, 5], [0, 0], [1.0, 2.0], [1.0, 0.5])
+    """
+    d, n = freqs.shape
+    if len(weights) != n:
+        raise InputError("active_columns", "weights", f"{n} floats", len(weights))
+    kept = [j for j, w in enumerate(weights) if w != 0.0]
+    device = freqs.device
+    index = torch.tensor(kept, dtype=torch.int64, device=device)
+    columns = [*range(d), *(d + j for j in kept), *(d + n + j for j in kept)]
+    return ActiveColumns(torch.tensor(columns, dtype=torch.int64, device=device),
+                         freqs[:, index].argmax(0) if kept else index,
+                         freqs.amax(0)[index],
+                         torch.tensor([weights[j] for j in kept], device=device))
+
+
+def encode_active(x: Tensor, active: ActiveColumns, dtype: torch.dtype | None = None) -> Tensor:
+    """The kept columns of :func:`encode_grouped` (``x [N, ΣD]`` → ``[N, ΣD + 2k]``,
+    ``[x, w·sin(A), w·cos(A)]`` over the ``k`` angles ``A = 2^k x_d`` of non-zero weight,
+    :func:`active_columns`), equal to ``encode_grouped(x, freqs, window)[:, columns]``: the
+    same angles (a gather times a power of two, exact), ``sin``, ``cos`` and products.
+
+    A layer reading these through its weight's kept columns sums the same non-zero terms
+    as one reading every column; the columns of bands that are off add zeros. Early in
+    annealing that is most of the first layer's products (the default job 20 steps in has
+    4 of the NeRF's 49 angle columns on: 12 inputs instead of 102), and no zeros are
+    written. The sums then run in another order, so the layer's outputs equal the full
+    layout's up to rounding."""
+    angles = torch.index_select(x, 1, active.source) * active.freq.to(x.dtype)
+    window = active.window.to(x.dtype)
+    feats = torch.cat([x, torch.sin(angles) * window, torch.cos(angles) * window], dim=-1)
+    return feats.to(dtype or x.dtype)
 
 
 class BandAnnealing(pl.Callback):
