@@ -38,20 +38,22 @@ def test_fused_relu_is_addmm_then_relu_to_the_bit(shape, scale, fused_calls) -> 
     """Under bf16 autocast with grad mode off: oneDNN's linear with a ReLU post-op equals
     autocast's ``addmm`` followed by ``relu`` exactly, with the weight doubled as the
     ``2·ReLU`` fold doubles it; so does the same call on bf16 parameters without
-    autocast."""
+    autocast; and oneDNN's linear without a post-op (``linear``) equals ``addmm``."""
     n, i, o = shape
     g = torch.Generator().manual_seed(n)
     h = torch.randn(n, i, generator=g).bfloat16()
     w, b = torch.randn(o, i, generator=g), torch.randn(o, generator=g)
-    want = torch.relu(torch.addmm(b.bfloat16(), h, (w.bfloat16() * scale).t()))
+    product = torch.addmm(b.bfloat16(), h, (w.bfloat16() * scale).t())
+    want = torch.relu(product)
     with torch.no_grad():
         with torch.autocast("cpu", dtype=torch.bfloat16):
             got = linear_relu(w, b, h, scale)
             plain = linear(w, b, h, scale)
         got_bf16 = linear_relu(w.bfloat16(), b.bfloat16(), h, scale)
-    assert fused_calls == [(n, i), (n, i)]
+    assert fused_calls == [(n, i)] * 3
     assert got.dtype == got_bf16.dtype == plain.dtype == torch.bfloat16
     assert torch.equal(got, want) and torch.equal(got_bf16, want)
+    assert torch.equal(plain, product)
     assert (want == 0).any() and (want > 0).any()             # the ReLU cut something
 
 
@@ -79,13 +81,14 @@ def test_nerf_field_renders_the_same_with_and_without_the_fused_relu(sizes, fuse
                                                                      monkeypatch) -> None:
     """The field with grad mode off under bf16 autocast (an evaluation image's query),
     with and without the skip: the same σ and rgb to the bit whether its hidden layers
-    and colour layer fuse their ReLU or not."""
+    and colour layer fuse their ReLU and the colour remap and output layers run oneDNN's
+    linear or not (the one-column density head keeps ``addmm``)."""
     torch.manual_seed(0)
     f = NeRFField(**sizes, anneal_steps=0)
     xyz, t = torch.rand(4096, 3) * 2 - 1, torch.rand(4096, 1)
     with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
         fused = f(xyz, t)
-        assert len(fused_calls) == 5                          # 4 hidden + the colour layer
+        assert len(fused_calls) == 7              # 4 hidden, remap, colour hidden, out
         monkeypatch.setattr(lin, "_POINTWISE", None)
         plain = f(xyz, t)
     for a, b in zip(fused, plain):

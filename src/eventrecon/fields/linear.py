@@ -22,6 +22,11 @@ gave the same gradients but was 4–6 % slower per field step (4 096–16 384 ro
 ``relu`` pass it saves being cheaper than the autograd function around it. Anywhere else
 (fp32, a GPU, a CPU without native bf16, a build without oneDNN) it is
 ``relu(addmm(...))``.
+
+:func:`linear` (the layers without a ReLU) runs oneDNN's linear without a post-op under
+the same conditions, for layers of at least :data:`POINTWISE_MIN_OUT` outputs: equal to
+``addmm``'s values bit for bit as measured (``tests/test_linear.py``), 1.04× faster for a
+fresh field's image and 1.005× for a trained one (docs/results/history.md, "Session 55").
 """
 
 from __future__ import annotations
@@ -64,9 +69,30 @@ def _scaled(weight: Tensor, h: Tensor, scale: float) -> Tensor:
     return weight
 
 
+#: Layers with fewer outputs than this keep ``addmm`` where oneDNN's linear could run: for
+#: a single output column (the NeRF's density head, 16 384 rows) oneDNN took 128 against
+#: ``addmm``'s 97 µs, while 64→64 ran in 362 against 394 µs and 32→3 in 78 against 129.
+POINTWISE_MIN_OUT = 2
+
+
+def _fusable(weight: Tensor, bias: Tensor, h: Tensor) -> bool:
+    """Whether oneDNN's linear runs this product (module docstring): grad mode off, ``h``
+    bf16 on a CPU with native bf16, and the weight and bias cast to bf16 as autocast's
+    ``addmm`` casts them (or bf16 already)."""
+    cast = ((torch.is_autocast_enabled("cpu") and torch.get_autocast_dtype("cpu") == h.dtype)
+            or weight.dtype == bias.dtype == h.dtype)
+    return (_POINTWISE is not None and not torch.is_grad_enabled() and h.device.type == "cpu"
+            and h.dtype == torch.bfloat16 and cast)
+
+
 def linear(weight: Tensor, bias: Tensor, h: Tensor, scale: float = 1.0) -> Tensor:
-    """``b + h (s·W)ᵀ`` in one ``addmm`` → ``[N, out]``."""
-    return torch.addmm(bias, h, _scaled(weight, h, scale).t())
+    """``b + h (s·W)ᵀ`` → ``[N, out]``: oneDNN's linear without a post-op where
+    :func:`linear_relu` fuses (and the layer has at least :data:`POINTWISE_MIN_OUT`
+    outputs), one ``addmm`` otherwise; the same values."""
+    weight = _scaled(weight, h, scale)
+    if weight.shape[0] < POINTWISE_MIN_OUT or not _fusable(weight, bias, h):
+        return torch.addmm(bias, h, weight.t())
+    return _POINTWISE(h, weight.to(h.dtype), bias.to(h.dtype), "none", [], "")
 
 
 def linear_relu(weight: Tensor, bias: Tensor, h: Tensor, scale: float = 1.0) -> Tensor:
@@ -75,9 +101,6 @@ def linear_relu(weight: Tensor, bias: Tensor, h: Tensor, scale: float = 1.0) -> 
     as autocast's ``addmm`` casts them; without it they must be bf16 already, as
     ``addmm`` requires."""
     weight = _scaled(weight, h, scale)
-    cast = ((torch.is_autocast_enabled("cpu") and torch.get_autocast_dtype("cpu") == h.dtype)
-            or weight.dtype == bias.dtype == h.dtype)
-    if (_POINTWISE is None or torch.is_grad_enabled() or h.device.type != "cpu"
-            or h.dtype != torch.bfloat16 or not cast):
+    if not _fusable(weight, bias, h):
         return torch.relu(torch.addmm(bias, h, weight.t()))
     return _POINTWISE(h, weight.to(h.dtype), bias.to(h.dtype), "relu", [], "")
