@@ -14,9 +14,9 @@ from eventrecon.fields.encoding import active_columns, encode_active, encode_gro
 STEPS = [0, 300, 1200, 3990]
 
 
-def _field(skip: int) -> NeRFField:
+def _field(skip: int, depth: int = 4) -> NeRFField:
     torch.manual_seed(7)
-    return NeRFField(depth=4, width=32, skip=skip, pos_bands=5, time_bands=3,
+    return NeRFField(depth=depth, width=32, skip=skip, pos_bands=5, time_bands=3,
                      remap_width=32, colour_width=16, anneal_steps=4000)
 
 
@@ -46,26 +46,33 @@ def test_active_columns_are_the_grouped_features_that_are_not_zero(step, dtype) 
 
 
 @pytest.mark.parametrize("autocast", [False, True])
-@pytest.mark.parametrize("skip", [-1, 1])
+@pytest.mark.parametrize("depth, skip", [(4, -1), (4, 1), (8, 4)])
 @pytest.mark.parametrize("step", STEPS)
-def test_the_field_without_grad_reads_only_the_kept_columns(step, skip, autocast,
+def test_the_field_without_grad_reads_only_the_kept_columns(step, depth, skip, autocast,
                                                             monkeypatch) -> None:
     """With grad mode off and some bands off the trunk reads ``4 + 2k`` feature columns
-    (with and without the skip); σ and rgb equal those of the full layout up to the
-    rounding of sums in another order (fp32: 1e-5; bf16 autocast: its 8-bit mantissa)."""
-    f = _field(skip)
+    (without the skip, and with it after layer 1 or, as the paper's network, layer 4);
+    σ and rgb equal those of the full layout up to the rounding of sums in another order
+    (fp32: 1e-5; bf16 autocast: its 8-bit mantissa)."""
+    f = _field(skip, depth)
     f.set_progress(step)
     k = sum(w != 0.0 for w in _weights(f))
     xyz, t = torch.rand(1025, 3) * 2 - 1, torch.rand(1025, 1)
-    widths = []
-    monkeypatch.setattr(f, "layer_weight", lambda i, columns=None: widths.append(
-        NeRFField.layer_weight(f, i, columns).shape[1]) or NeRFField.layer_weight(f, i, columns))
+    widths: list[int] = []
+
+    def recorded(i: int, columns: torch.Tensor | None = None) -> torch.Tensor:
+        weight = NeRFField.layer_weight(f, i, columns)
+        widths.append(weight.shape[1])
+        return weight
+    monkeypatch.setattr(f, "layer_weight", recorded)
+    full_width = 4 + 2 * 5 * 3 + 2 * 3
     with torch.no_grad(), torch.autocast("cpu", torch.bfloat16, enabled=autocast):
         kept = f(xyz, t)
         assert widths[0] == 4 + 2 * k and (skip < 0 or widths[skip + 1] == 4 + 2 * k + 32)
+        widths.clear()
         monkeypatch.setattr(f, "active_features", lambda *_: None)
         full = f(xyz, t)
-        assert f.layer_weight(0).shape[1] == 4 + 2 * 5 * 3 + 2 * 3
+        assert widths[0] == full_width and (skip < 0 or widths[skip + 1] == full_width + 32)
     tol = 3e-2 if autocast else 1e-5
     for a, b in zip(kept, full):
         assert a.dtype == b.dtype
@@ -87,6 +94,14 @@ def test_the_kept_columns_follow_the_window_and_grad_mode() -> None:
         assert later is not first and later.columns.numel() > first.columns.numel()
         f.set_progress(4000)
         assert f.active_features(xyz, t) is None
+        g = _field(-1)                           # a checkpoint of another window, loaded
+        g.set_progress(300)
+        f.set_progress(1200)
+        f.active_features(xyz, t)
+        f.load_state_dict(g.state_dict())
+        assert torch.equal(f.active_features(xyz, t)[1].columns, first.columns)
+        assert torch.equal(f.active_features(xyz, t)[0],
+                           f.features(xyz, t)[:, first.columns])
     f.set_progress(300)
     assert f.active_features(xyz, t) is None                 # grad mode on: training
 

@@ -58,18 +58,35 @@ def test_fused_relu_is_addmm_then_relu_to_the_bit(shape, scale, fused_calls) -> 
 
 
 def test_fp32_autograd_and_mixed_dtypes_keep_addmm(fused_calls) -> None:
-    """Nothing is fused in fp32, with grad mode on (training), or for bf16 activations
-    with fp32 parameters outside autocast, which stays ``addmm``'s dtype error."""
+    """Nothing runs oneDNN's linear in fp32, with grad mode on (training), for bf16
+    activations with fp32 parameters outside autocast, or fp64 parameters under bf16
+    autocast (both stay ``addmm``'s dtype error), with a ReLU or without."""
     h, w, b = torch.randn(50, 8), torch.randn(4, 8), torch.randn(4)
     with torch.no_grad():
         assert torch.equal(linear_relu(w, b, h), torch.relu(torch.addmm(b, h, w.t())))
-        with pytest.raises(RuntimeError):
-            linear_relu(w, b, h.bfloat16())
+        assert torch.equal(linear(w, b, h), torch.addmm(b, h, w.t()))
+        for fn in (linear_relu, linear):
+            with pytest.raises(RuntimeError):
+                fn(w, b, h.bfloat16())
+            with pytest.raises(RuntimeError), torch.autocast("cpu", dtype=torch.bfloat16):
+                fn(w.double(), b.double(), h.bfloat16())    # autocast casts fp32 only
     w.requires_grad_(True)
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        out = linear_relu(w, b, h.bfloat16())
+        out = linear_relu(w, b, h.bfloat16()) + linear(w, b, h.bfloat16())
     out.float().sum().backward()
     assert fused_calls == [] and w.grad is not None
+
+
+@fused_only
+def test_a_single_output_column_keeps_addmm(fused_calls) -> None:
+    """The density head's shape (one output) stays ``addmm`` (faster there); two outputs
+    take oneDNN's linear. Both give ``addmm``'s values."""
+    h = torch.randn(300, 64).bfloat16()
+    with torch.no_grad():
+        for out in (1, 2):
+            w, b = torch.randn(out, 64).bfloat16(), torch.randn(out).bfloat16()
+            assert torch.equal(linear(w, b, h), torch.addmm(b, h, w.t()))
+    assert fused_calls == [(300, 64)]
 
 
 @fused_only

@@ -258,7 +258,7 @@ class ActiveColumns(NamedTuple):
 
     columns: Tensor    # [ΣD + 2k] int64: the grouped columns kept, raw, then sin, then cos
     source: Tensor     # [k] int64: each kept angle's input column
-    freq: Tensor       # [k]: its 2^k
+    freq: Tensor       # [k]: its frequency, a power of two
     window: Tensor     # [k]: its band weight
 
 
@@ -282,14 +282,20 @@ def active_columns(freqs: Tensor, weights: Sequence[float]) -> ActiveColumns:
     return ActiveColumns(torch.tensor(columns, dtype=torch.int64, device=device),
                          freqs[:, index].argmax(0) if kept else index,
                          freqs.amax(0)[index],
-                         torch.tensor([weights[j] for j in kept], device=device))
+                         torch.tensor([weights[j] for j in kept], dtype=freqs.dtype,
+                                      device=device))
 
 
 def encode_active(x: Tensor, active: ActiveColumns, dtype: torch.dtype | None = None) -> Tensor:
     """The kept columns of :func:`encode_grouped` (``x [N, ΣD]`` → ``[N, ΣD + 2k]``,
     ``[x, w·sin(A), w·cos(A)]`` over the ``k`` angles ``A = 2^k x_d`` of non-zero weight,
     :func:`active_columns`), equal to ``encode_grouped(x, freqs, window)[:, columns]``: the
-    same angles (a gather times a power of two, exact), ``sin``, ``cos`` and products.
+    same angles (a gather times a power of two, exact), ``sin``, ``cos`` and products. Two
+    edge cases differ in bits, not in value: a ``−0`` input keeps ``−0`` angles here (the
+    product of :func:`_angles` gives ``+0``), and a non-finite input makes only its own
+    angle columns NaN here (every angle column of its row there). The window's values are
+    the host floats ``weights`` the layout was built from, as :func:`encode_grouped` reads
+    them when given.
 
     A layer reading these through its weight's kept columns sums the same non-zero terms
     as one reading every column; the columns of bands that are off add zeros. Early in

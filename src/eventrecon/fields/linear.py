@@ -79,7 +79,9 @@ def _fusable(weight: Tensor, bias: Tensor, h: Tensor) -> bool:
     """Whether oneDNN's linear runs this product (module docstring): grad mode off, ``h``
     bf16 on a CPU with native bf16, and the weight and bias cast to bf16 as autocast's
     ``addmm`` casts them (or bf16 already)."""
-    cast = ((torch.is_autocast_enabled("cpu") and torch.get_autocast_dtype("cpu") == h.dtype)
+    castable = (torch.float32, h.dtype)                  # what autocast casts, or bf16
+    cast = ((torch.is_autocast_enabled("cpu") and torch.get_autocast_dtype("cpu") == h.dtype
+             and weight.dtype in castable and bias.dtype in castable)
             or weight.dtype == bias.dtype == h.dtype)
     return (_POINTWISE is not None and not torch.is_grad_enabled() and h.device.type == "cpu"
             and h.dtype == torch.bfloat16 and cast)

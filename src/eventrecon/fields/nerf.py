@@ -50,8 +50,8 @@ order. Concatenating the band-by-band layout copied a few elements per row and t
 of a bf16 forward pass; the function is the same, its first sums run in another order.
 With grad mode off (images, curve points, the occupancy grid's queries) while some bands
 are off, the layers that read the features read only the columns that are not zero, with
-their weight columns (:meth:`NeRFField.active_features`): a fresh field's image has 12
-inputs to its first layer instead of 102.
+their weight columns (:meth:`NeRFField.active_features`): an untrained field's image at
+step 20 (issue 12's 20-step run) has 12 inputs to its first layer instead of 102.
 """
 
 from __future__ import annotations
@@ -150,7 +150,7 @@ class NeRFField(Field):
         self.register_buffer("skip_order", torch.cat([order, torch.arange(width) + in_dim]),
                              persistent=False)
         #: the last band window's kept columns (:meth:`active_features`), keyed by window
-        self._active: tuple[tuple[Any, ...], ActiveColumns] | None = None
+        self._active: tuple[tuple[tuple[float, ...], torch.device], ActiveColumns] | None = None
 
     def set_progress(self, step: float) -> None:
         """Set the band-annealing window of both encodings for training ``step``."""
@@ -186,7 +186,7 @@ class NeRFField(Field):
         """With grad mode off and some band off: the columns of :meth:`features` that are
         not zero, ``[N, 4 + 2k]`` for ``k`` angle columns on, and which they are
         (:func:`~eventrecon.fields.encoding.encode_active`); ``None`` otherwise. The
-        layout is rebuilt only when the band window changes."""
+        layout is rebuilt only when the band window (or the device) changes."""
         encs = (self.pos_enc, self.time_enc)
         if torch.is_grad_enabled() or all(e.all_on for e in encs):
             return None
