@@ -84,6 +84,14 @@ __all__ = ["NeRFField"]
 ZEROED_VIEWDIR_FEATURES = 27
 
 
+def _feature_dtype(xyz: Tensor) -> torch.dtype | None:
+    """The dtype the features are made in: autocast's where it is active on ``xyz``'s
+    device (the cast the first layer would make), else ``None`` (``xyz``'s)."""
+    device = xyz.device.type
+    return (torch.get_autocast_dtype(device) if torch.amp.is_autocast_available(device)
+            and torch.is_autocast_enabled(device) else None)
+
+
 class NeRFField(Field):
     """The NeRF MLP of Dynamic EventNeRF (maths in the module docstring).
 
@@ -170,35 +178,36 @@ class NeRFField(Field):
         cast the first layer would make). The forward pass reads these, at under half
         the encoding's time, with the weight columns that take them gathered in the
         same order (:meth:`layer_weight`)."""
-        encs = (self.pos_enc, self.time_enc)
-        window, weights = None, None
-        if not all(e.all_on for e in encs):
-            window = torch.cat([e.window.repeat_interleave(e.in_dim) for e in encs])
-            window = window.to(xyz.dtype)
-            weights = [w for e in encs for w in e.weights for _ in range(e.in_dim)]
-        device = xyz.device.type
-        dtype = (torch.get_autocast_dtype(device) if torch.amp.is_autocast_available(device)
-                 and torch.is_autocast_enabled(device) else None)
+        weights = self._column_weights()
+        window = None
+        if weights is not None:
+            window = torch.cat([e.window.repeat_interleave(e.in_dim)
+                                for e in (self.pos_enc, self.time_enc)]).to(xyz.dtype)
         return encode_grouped(torch.cat([xyz, t.to(xyz.dtype)], dim=-1), self.feature_freqs,
-                              window, dtype, weights)
+                              window, _feature_dtype(xyz), weights)
 
     def active_features(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, ActiveColumns] | None:
         """With grad mode off and some band off: the columns of :meth:`features` that are
         not zero, ``[N, 4 + 2k]`` for ``k`` angle columns on, and which they are
         (:func:`~eventrecon.fields.encoding.encode_active`); ``None`` otherwise. The
         layout is rebuilt only when the band window (or the device) changes."""
-        encs = (self.pos_enc, self.time_enc)
-        if torch.is_grad_enabled() or all(e.all_on for e in encs):
+        weights = None if torch.is_grad_enabled() else self._column_weights()
+        if weights is None:
             return None
-        weights = tuple(w for e in encs for w in e.weights for _ in range(e.in_dim))
         key = (weights, self.feature_freqs.device)
         if self._active is None or self._active[0] != key:
             self._active = (key, active_columns(self.feature_freqs, weights))
         active = self._active[1]
-        device = xyz.device.type
-        dtype = (torch.get_autocast_dtype(device) if torch.amp.is_autocast_available(device)
-                 and torch.is_autocast_enabled(device) else None)
-        return encode_active(torch.cat([xyz, t.to(xyz.dtype)], dim=-1), active, dtype), active
+        x = torch.cat([xyz, t.to(xyz.dtype)], dim=-1)
+        return encode_active(x, active, _feature_dtype(xyz)), active
+
+    def _column_weights(self) -> tuple[float, ...] | None:
+        """The band weight of each angle column of the grouped layout (host floats, the
+        order of ``feature_freqs``' columns); ``None`` when every band is on."""
+        encs = (self.pos_enc, self.time_enc)
+        if all(e.all_on for e in encs):
+            return None
+        return tuple(w for e in encs for w in e.weights for _ in range(e.in_dim))
 
     def layer_weight(self, i: int, columns: Tensor | None = None) -> Tensor:
         """Trunk layer ``i``'s weight ``[width, in]`` with its columns in the order of the
