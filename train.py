@@ -163,5 +163,8 @@ def _record_failure(cfg: DictConfig, out_dir: Path, err: BaseException) -> None:
 
 
 if __name__ == "__main__":
+    from eventrecon.overrides import report_bad_overrides
+
     sys.argv = [sys.argv[0], *_pick_trainer_preset(sys.argv[1:])]
+    report_bad_overrides()
     main()

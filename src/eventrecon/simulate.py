@@ -20,6 +20,7 @@ from omegaconf import DictConfig
 
 from eventrecon.allocator import retain_freed_memory
 from eventrecon.errors import InputError
+from eventrecon.overrides import report_bad_overrides
 from eventrecon.sim.pipeline import ensure_dataset
 
 log = logging.getLogger("eventrecon.simulate")
@@ -50,4 +51,5 @@ def main(cfg: DictConfig) -> None:
 
 if __name__ == "__main__":
     retain_freed_memory()
+    report_bad_overrides()
     main()
