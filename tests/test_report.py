@@ -746,3 +746,17 @@ def test_time_to_level_on_the_median_of_the_last_points_ignores_a_lone_spike():
     assert time_to_level(w, p, 26.5, window=3) is None
     np.testing.assert_array_equal(trailing_median(p[:7], 3),
                                   [24.0, 24.05, 24.1, 24.1, 24.2, 24.2, 26.0])
+
+
+def test_a_report_of_folders_that_do_not_exist_writes_nothing(tmp_path, caplog):
+    out = tmp_path / "docs" / "results"
+    out.mkdir(parents=True)
+    (out / "table3.md").write_text("committed\n")
+    with caplog.at_level("ERROR"):
+        assert main([str(tmp_path / "multirn"), "--out", str(out)]) == 2   # a typo
+    assert [r.getMessage() for r in caplog.records if r.levelname == "ERROR"] == [
+        f"{tmp_path / 'multirn'}: run folders: expected at least one existing folder of runs "
+        "(make some with python train.py -m experiment=table3 scale=cpu; the committed "
+        "records: python -m eventrecon.report docs/results/runs), got none"]
+    assert sorted(p.name for p in out.iterdir()) == ["table3.md"]
+    assert (out / "table3.md").read_text() == "committed\n"

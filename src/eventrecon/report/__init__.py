@@ -19,6 +19,7 @@ import logging
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
+from eventrecon.errors import InputError
 from eventrecon.report.collapses import collapsed_cells, collapsed_cells_markdown
 from eventrecon.report.compute import sweep_costs, sweep_costs_markdown
 from eventrecon.report.curves import DEFAULT_LEVELS, write_accuracy_vs_time
@@ -66,7 +67,15 @@ def build_report(
 ) -> list[Path]:
     """Collect the runs under ``dirs`` and write every table and the accuracy-vs-time
     figure and table (``loss=full`` runs of ``curves_experiment``) into ``out``.
-    Returns the written paths."""
+    Returns the written paths. Raises :class:`~eventrecon.errors.InputError` before writing
+    anything when none of ``dirs`` exists (a typo, or no sweep run yet): the tables would
+    be empty, and written to ``docs/results`` they would replace the committed ones."""
+    dirs = [Path(d) for d in dirs]
+    if not any(d.is_dir() for d in dirs):
+        raise InputError(", ".join(map(str, dirs)), "run folders",
+                         "at least one existing folder of runs (make some with python train.py "
+                         "-m experiment=table3 scale=cpu; the committed records: python -m "
+                         "eventrecon.report docs/results/runs)", "none")
     runs = current_runs(collect_runs(dirs))
     log.info("found %d runs (%d ok)", len(runs), sum(r.ok for r in runs))
     paths = write_tables(runs, out, tables, real_scene=real_scene)
