@@ -757,6 +757,6 @@ def test_a_report_of_folders_that_do_not_exist_writes_nothing(tmp_path, caplog):
     assert [r.getMessage() for r in caplog.records if r.levelname == "ERROR"] == [
         f"{tmp_path / 'multirn'}: run folders: expected at least one existing folder of runs "
         "(make some with python train.py -m experiment=table3 scale=cpu; the committed "
-        "records: python -m eventrecon.report docs/results/runs), got none"]
+        "records: python -m eventrecon.report docs/results/runs), got no such folder"]
     assert sorted(p.name for p in out.iterdir()) == ["table3.md"]
     assert (out / "table3.md").read_text() == "committed\n"

@@ -69,14 +69,15 @@ def build_report(
     figure and table (``loss=full`` runs of ``curves_experiment``) into ``out``.
     Returns the written paths. Raises :class:`~eventrecon.errors.InputError` before writing
     anything when none of ``dirs`` exists (a typo, or no sweep run yet): the tables would
-    be empty, and written to ``docs/results`` they would replace the committed ones."""
-    dirs = [Path(d) for d in dirs]
-    if not any(d.is_dir() for d in dirs):
-        raise InputError(", ".join(map(str, dirs)), "run folders",
+    be empty, and written to ``docs/results`` they would replace the committed ones. (Folders
+    that exist but hold no run still give tables of "—", as for missing cells.)"""
+    folders = [Path(d) for d in dirs]
+    if not any(d.is_dir() for d in folders):
+        raise InputError(", ".join(map(str, folders)), "run folders",
                          "at least one existing folder of runs (make some with python train.py "
                          "-m experiment=table3 scale=cpu; the committed records: python -m "
-                         "eventrecon.report docs/results/runs)", "none")
-    runs = current_runs(collect_runs(dirs))
+                         "eventrecon.report docs/results/runs)", "no such folder")
+    runs = current_runs(collect_runs(folders))
     log.info("found %d runs (%d ok)", len(runs), sum(r.ok for r in runs))
     paths = write_tables(runs, out, tables, real_scene=real_scene)
     paths += write_accuracy_vs_time(runs, out, levels, curves_experiment)
