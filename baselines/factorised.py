@@ -89,10 +89,13 @@ class FactorisedField(Field):
 
     def forward(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
         """``xyz [N, 3], t [N, 1] -> (sigma [N], rgb [N, 3])``."""
-        coords = box_normalize(xyz, t, self.box_lo, self.box_hi)
-        out = self.combine(self.grids(coords))                          # [N, F·R]
-        out = out.reshape(-1, FEATURES, self.rank).sum(-1)              # [N, F]
+        out = self.rank_sum(box_normalize(xyz, t, self.box_lo, self.box_hi))
         return activate(out[:, 0], out[:, 1:])
+
+    def rank_sum(self, coords: Tensor) -> Tensor:
+        """``o [N, F]``: the rank components at ``coords [N, 4]`` summed over the rank."""
+        out = self.combine(self.grids(coords))                          # [N, F·R]
+        return out.reshape(-1, FEATURES, self.rank).sum(-1)
 
     def callbacks(self) -> list[Any]:
         """Grid growth (upsampling + optimiser rebuild) when the plan has stages."""
