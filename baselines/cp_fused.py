@@ -2,7 +2,7 @@
 
 For lines ``T_a [R_a, C]`` (``a = x, y, z, t``, channels innermost, ``C = F·R``) read at
 a point with lower vertex ``i_a`` and weights ``(u_a, v_a)`` (:func:`baselines.interp.corners`;
-a vertex outside the line adds nothing),
+a vertex outside the line is not read),
 
 .. math::
     s_a[c] = u_a T_a[i_a, c] + v_a T_a[i_a + 1, c],\\qquad
@@ -24,9 +24,10 @@ The samples and products are computed with the same expressions, in the same ord
 line-by-line sampling followed by ``s_x * s_y * s_z * s_t`` and autograd's products, so
 the lines' gradients are the same to the bit; the forward's rank sum runs in another
 order than ``Tensor.sum``, so ``o`` agrees to rounding. A point with a non-finite
-coordinate reads NaN there, as line by line. Where :func:`supported` is false (a GPU, no
-numba, coordinates that need a gradient) :func:`cp_rank_sum` returns ``None`` and the
-caller samples line by line.
+coordinate reads NaN there, as line by line. The backward pass reads the lines again, so
+a line changed in place between the passes raises autograd's version error. Where
+:func:`supported` is false (a GPU, no numba, coordinates that need a gradient)
+:func:`cp_rank_sum` returns ``None`` and the caller samples line by line.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ import torch
 from torch import Tensor
 
 from baselines.interp import corners, vertex_coords
+from eventrecon.errors import InputError
 from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline
 
 __all__ = ["cp_rank_sum", "supported"]
@@ -47,35 +49,59 @@ __all__ = ["cp_rank_sum", "supported"]
 @njit_inline
 def _pair(lower: Any, weights: Any, sizes: Any, n: int, a: int) -> tuple[int, int, Any, Any,
                                                                             bool, bool]:
-    """Point ``n``'s two vertices on line ``a``: rows to read (0 for a vertex outside),
-    their weights (0 for a vertex outside, NaN kept) and whether each lies inside."""
+    """Point ``n``'s two vertices on line ``a``: their rows, weights and whether each lies
+    inside the line."""
     i = lower[n, a]
-    u, v = weights[n, a, 0], weights[n, a, 1]
-    inside_u = 0 <= i < sizes[a]
-    inside_v = 0 <= i + 1 < sizes[a]
-    if not inside_u and u == u:                  # u − u: a zero of the weights' dtype
-        u = u - u
-    if not inside_v and v == v:
-        v = v - v
-    return (i if inside_u else 0), (i + 1 if inside_v else 0), u, v, inside_u, inside_v
+    return (i, i + 1, weights[n, a, 0], weights[n, a, 1], 0 <= i < sizes[a],
+            0 <= i + 1 < sizes[a])
+
+
+@njit_inline
+def _line(T: Any, i: int, j: int, u: Any, v: Any, in_i: bool, in_j: bool, s: Any,
+          k: int) -> None:
+    """``s[k] [C]``: the line's sample, as :mod:`baselines.interp` sums it (a fill of 0, or
+    NaN for a NaN weight, i.e. a non-finite coordinate, plus each vertex inside)."""
+    if in_i and in_j:                            # the common case, without branches
+        for c in range(T.shape[1]):
+            s[k, c] = u * T[i, c] + v * T[j, c]
+        return
+    fill = u if u != u else u - u                # u − u: a zero of the weights' dtype
+    for c in range(T.shape[1]):
+        x = fill
+        if in_i:
+            x += u * T[i, c]
+        if in_j:
+            x += v * T[j, c]
+        s[k, c] = x
+
+
+@njit_inline
+def _samples(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weights: Any,
+             n: int, s: Any) -> tuple:
+    """Point ``n``'s four line samples into ``s [4, C]``; returns each line's vertices
+    (rows, weights, inside) for the scatter."""
+    a0, b0, u0, v0, in_a0, in_b0 = _pair(lower, weights, sizes, n, 0)
+    a1, b1, u1, v1, in_a1, in_b1 = _pair(lower, weights, sizes, n, 1)
+    a2, b2, u2, v2, in_a2, in_b2 = _pair(lower, weights, sizes, n, 2)
+    a3, b3, u3, v3, in_a3, in_b3 = _pair(lower, weights, sizes, n, 3)
+    _line(T0, a0, b0, u0, v0, in_a0, in_b0, s, 0)
+    _line(T1, a1, b1, u1, v1, in_a1, in_b1, s, 1)
+    _line(T2, a2, b2, u2, v2, in_a2, in_b2, s, 2)
+    _line(T3, a3, b3, u3, v3, in_a3, in_b3, s, 3)
+    return ((a0, b0, u0, v0, in_a0, in_b0), (a1, b1, u1, v1, in_a1, in_b1),
+            (a2, b2, u2, v2, in_a2, in_b2), (a3, b3, u3, v3, in_a3, in_b3))
 
 
 @njit_borrowing
 def _forward(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weights: Any,
-             rank: int, out: Any, prod: Any) -> None:
-    """``out [N, F]``: the rank sums of the line products (module docstring)."""
+             rank: int, out: Any, s: Any, prod: Any) -> None:
+    """``out [N, F]``: the rank sums of the line products (module docstring); ``s [4, C]``
+    and ``prod [C]`` scratch."""
     c_all = T0.shape[1]
     for n in range(lower.shape[0]):
-        a0, b0, u0, v0, _, _ = _pair(lower, weights, sizes, n, 0)
-        a1, b1, u1, v1, _, _ = _pair(lower, weights, sizes, n, 1)
-        a2, b2, u2, v2, _, _ = _pair(lower, weights, sizes, n, 2)
-        a3, b3, u3, v3, _, _ = _pair(lower, weights, sizes, n, 3)
+        _samples(T0, T1, T2, T3, sizes, lower, weights, n, s)
         for c in range(c_all):
-            s0 = u0 * T0[a0, c] + v0 * T0[b0, c]
-            s1 = u1 * T1[a1, c] + v1 * T1[b1, c]
-            s2 = u2 * T2[a2, c] + v2 * T2[b2, c]
-            s3 = u3 * T3[a3, c] + v3 * T3[b3, c]
-            prod[c] = ((s0 * s1) * s2) * s3
+            prod[c] = ((s[0, c] * s[1, c]) * s[2, c]) * s[3, c]
         for f in range(c_all // rank):
             acc = prod[f * rank]
             for r in range(1, rank):
@@ -84,54 +110,36 @@ def _forward(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weights
 
 
 @njit_inline
-def _axpy(G: Any, row: int, w: Any, x: Any, a: int) -> None:
-    """``G[row] += w · x[a]`` over the channels."""
-    for c in range(G.shape[1]):
-        G[row, c] += w * x[a, c]
+def _axpy(G: Any, row: int, w: Any, x: Any, a: int, inside: bool) -> None:
+    """``G[row] += w · x[a]`` over the channels, for a vertex inside the line."""
+    if inside:
+        for c in range(G.shape[1]):
+            G[row, c] += w * x[a, c]
 
 
 @njit_borrowing
 def _backward(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weights: Any,
-              rank: int, grad: Any, G0: Any, G1: Any, G2: Any, G3: Any, part: Any) -> None:
-    """``G_a += ∂L/∂T_a`` for ``grad = ∂L/∂out [N, F]`` (module docstring); ``part
+              rank: int, grad: Any, G0: Any, G1: Any, G2: Any, G3: Any, s: Any,
+              part: Any) -> None:
+    """``G_a += ∂L/∂T_a`` for ``grad = ∂L/∂out [N, F]`` (module docstring); ``s, part
     [4, C]`` scratch. The products' gradients follow autograd's order for
     ``((s0 · s1) · s2) · s3``."""
     c_all = T0.shape[1]
     for n in range(lower.shape[0]):
-        a0, b0, u0, v0, in_a0, in_b0 = _pair(lower, weights, sizes, n, 0)
-        a1, b1, u1, v1, in_a1, in_b1 = _pair(lower, weights, sizes, n, 1)
-        a2, b2, u2, v2, in_a2, in_b2 = _pair(lower, weights, sizes, n, 2)
-        a3, b3, u3, v3, in_a3, in_b3 = _pair(lower, weights, sizes, n, 3)
+        p0, p1, p2, p3 = _samples(T0, T1, T2, T3, sizes, lower, weights, n, s)
         for f in range(c_all // rank):
             g = grad[n, f]
             for c in range(f * rank, f * rank + rank):
-                s0 = u0 * T0[a0, c] + v0 * T0[b0, c]
-                s1 = u1 * T1[a1, c] + v1 * T1[b1, c]
-                s2 = u2 * T2[a2, c] + v2 * T2[b2, c]
-                s3 = u3 * T3[a3, c] + v3 * T3[b3, c]
-                p01 = s0 * s1
-                g012 = g * s3
-                g01 = g012 * s2
-                part[3, c] = g * (p01 * s2)
+                p01 = s[0, c] * s[1, c]
+                g012 = g * s[3, c]
+                g01 = g012 * s[2, c]
+                part[3, c] = g * (p01 * s[2, c])
                 part[2, c] = g012 * p01
-                part[1, c] = g01 * s0
-                part[0, c] = g01 * s1
-        if in_a0:
-            _axpy(G0, a0, u0, part, 0)
-        if in_b0:
-            _axpy(G0, b0, v0, part, 0)
-        if in_a1:
-            _axpy(G1, a1, u1, part, 1)
-        if in_b1:
-            _axpy(G1, b1, v1, part, 1)
-        if in_a2:
-            _axpy(G2, a2, u2, part, 2)
-        if in_b2:
-            _axpy(G2, b2, v2, part, 2)
-        if in_a3:
-            _axpy(G3, a3, u3, part, 3)
-        if in_b3:
-            _axpy(G3, b3, v3, part, 3)
+                part[1, c] = g01 * s[0, c]
+                part[0, c] = g01 * s[1, c]
+        for G, p, k in ((G0, p0, 0), (G1, p1, 1), (G2, p2, 2), (G3, p3, 3)):
+            _axpy(G, p[0], p[2], part, k, p[4])
+            _axpy(G, p[1], p[3], part, k, p[5])
 
 
 def _table(line: Tensor) -> np.ndarray:
@@ -157,13 +165,15 @@ class _CPRankSum(torch.autograd.Function):
         *lines, lower, weights = ctx.saved_tensors
         tables = [_table(line) for line in lines]
         sums = [torch.zeros(t.shape, dtype=lines[0].dtype) for t in tables]     # [R_a, C]
-        part = np.empty((4, tables[0].shape[1]), tables[0].dtype)
+        samples = np.empty((4, tables[0].shape[1]), tables[0].dtype)
         _backward(*tables, _sizes(lines), lower.numpy(), weights.numpy(), ctx.rank,
-                  grad.contiguous().numpy(), *(s.numpy() for s in sums), part)
+                  grad.contiguous().numpy(), *(s.numpy() for s in sums), samples,
+                  np.empty_like(samples))
         return (*(s.t() for s in sums), None, None, None)
 
 
 def _sizes(lines: Sequence[Tensor]) -> np.ndarray:
+    """``[4]`` int64: each line's vertex count."""
     return np.array([line.shape[1] for line in lines], dtype=np.int64)
 
 
@@ -171,18 +181,19 @@ def _read(lines: Sequence[Tensor], lower: Tensor, weights: Tensor, rank: int) ->
     """The forward pass: ``[N, F]``."""
     c = lines[0].shape[0]
     out = lines[0].new_empty(lower.shape[0], c // rank)
-    prod = np.empty(c, out.numpy().dtype)
+    dtype = out.numpy().dtype
     _forward(*(_table(line) for line in lines), _sizes(lines), lower.numpy(), weights.numpy(),
-             rank, out.numpy(), prod)
+             rank, out.numpy(), np.empty((4, c), dtype), np.empty(c, dtype))
     return out
 
 
 def supported(lines: Sequence[Tensor], coords: Tensor, align_corners: Sequence[bool]) -> bool:
     """Whether :func:`cp_rank_sum` serves this call: numba present, four lines ``[C, R_a]``
-    of one float32/float64 dtype on the CPU, one sampling convention, coordinates of that
-    dtype that need no gradient."""
+    of one ``C`` and one float32/float64 dtype on the CPU, one sampling convention,
+    coordinates ``[N, 4]`` of that dtype that need no gradient."""
     return (AVAILABLE and len(lines) == 4 and all(line.dim() == 2 for line in lines)
-            and len(set(align_corners)) == 1
+            and len({line.shape[0] for line in lines}) == 1 and len(set(align_corners)) == 1
+            and coords.dim() == 2 and coords.shape[1] == 4
             and all(line.device.type == "cpu" and line.dtype == coords.dtype
                     for line in lines)
             and coords.dtype in (torch.float32, torch.float64)
@@ -197,6 +208,9 @@ def cp_rank_sum(lines: Sequence[Tensor], coords: Tensor, align_corners: Sequence
     ``None`` where :func:`supported` is false."""
     if not supported(lines, coords, align_corners):
         return None
+    if rank < 1 or lines[0].shape[0] % rank:
+        raise InputError("baselines.cp_fused", "rank",
+                         f"a divisor of the lines' {lines[0].shape[0]} channels", rank)
     sizes = tuple(int(line.shape[1]) for line in lines)
     p = vertex_coords(coords.detach(), sizes, align_corners[0], padding)
     lower, weights = corners(p)

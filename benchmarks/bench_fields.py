@@ -76,9 +76,11 @@ def make_naive(field: Field) -> Field:
         enc.forward = lambda u: hash_encode_reference(enc, u)  # type: ignore[method-assign]
     elif isinstance(field, FactorisedField):
         grids = field.grids
-        grids.forward = lambda c: [  # type: ignore[method-assign]   # [k = 1, C, N]
-            sample_grid_reference(f, c[:, list(ax)], ac, grids.padding)[None]
+        grids.forward = lambda c: [  # type: ignore[method-assign]   # [N, C] each
+            sample_grid_reference(f, c[:, list(ax)], ac, grids.padding).t()
             for f, ax, ac in zip(grids.factors, grids.axes, grids.align_corners)]
+        # factor by factor, also where the field fuses them (TensoRF-CP's lines on a CPU)
+        field.rank_sum = lambda c: FactorisedField.rank_sum(field, c)  # type: ignore[method-assign]
     else:
         raise TypeError(f"no naive version of {type(field).__name__}")
     return field

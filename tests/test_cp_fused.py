@@ -10,8 +10,9 @@ import torch
 import baselines.tensorf_cp as tensorf_cp
 from baselines import TensoRFCPField
 from baselines.cp_fused import cp_rank_sum, supported
-from baselines.factorised import FEATURES, FactorisedField
-from baselines.grids import channels_last, sample_grid_reference
+from baselines.factorised import FEATURES
+from baselines.grids import channels_last, sample_grid_reference, sample_points
+from eventrecon.errors import InputError
 from eventrecon.sim.pipeline import torch_threads
 
 
@@ -28,12 +29,9 @@ def _coords(n: int, dtype: torch.dtype, seed: int = 1) -> torch.Tensor:
     return c
 
 
-def _line_by_line(field: FactorisedField, coords: torch.Tensor) -> torch.Tensor:
-    return FactorisedField.rank_sum(field, coords)
-
-
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("rank,sizes", [(3, (7, 5, 9, 4)), (16, (40, 23, 16, 24))])
+@pytest.mark.parametrize("rank,sizes", [(1, (4, 3, 5, 2)), (3, (7, 5, 9, 4)),
+                                        (16, (40, 23, 16, 24))])
 @pytest.mark.parametrize("align,padding", [(False, "zeros"), (True, "zeros"),
                                            (False, "border")])
 def test_gradients_equal_line_by_line_and_values_agree(dtype, rank, sizes, align, padding):
@@ -46,7 +44,6 @@ def test_gradients_equal_line_by_line_and_values_agree(dtype, rank, sizes, align
     samples = [sample_grid_reference(line, coords[:, a:a + 1], align, padding).t()
                for a, line in enumerate(lines)]
     # line by line as the field samples: baselines.interp, then the products and the sum
-    from baselines.grids import sample_points
     by_line = [sample_points(line, coords[:, a:a + 1], align, padding)
                for a, line in enumerate(lines)]
     ref = (by_line[0] * by_line[1] * by_line[2] * by_line[3]).reshape(-1, FEATURES, rank).sum(-1)
@@ -64,8 +61,6 @@ def test_gradients_equal_line_by_line_and_values_agree(dtype, rank, sizes, align
 
 
 def test_a_non_finite_coordinate_reads_nan_as_line_by_line():
-    from baselines.grids import sample_points
-
     lines = _lines(2, (5, 6, 7, 4), torch.float32)
     coords = _coords(50, torch.float32)
     coords[7, 2], coords[9, 0] = float("nan"), float("inf")
@@ -81,6 +76,25 @@ def test_a_non_finite_coordinate_reads_nan_as_line_by_line():
         assert torch.equal(a.isnan(), b.isnan()) and torch.equal(a.nan_to_num(), b.nan_to_num())
 
 
+def test_a_vertex_outside_a_line_is_not_read():
+    """Row 0 of a line made non-finite (a diverged parameter): a point whose vertices are
+    row 4 and one outside stays finite, as line by line; one that reads row 0 does not;
+    no point gives an empty result."""
+    lines = _lines(2, (5, 6, 7, 4), torch.float32)
+    coords = torch.tensor([[0.9, 0.0, 0.0, 0.0], [-0.95, 0.0, 0.0, 0.0]])   # x: 4.25, -0.375
+    with torch.no_grad():
+        lines[0][:, 0] = float("inf")
+    fused = cp_rank_sum(lines, coords, [False] * 4, "zeros", 2)
+    by_line = [sample_points(line, coords[:, a:a + 1], False, "zeros")
+               for a, line in enumerate(lines)]
+    ref = (by_line[0] * by_line[1] * by_line[2] * by_line[3]).reshape(-1, FEATURES, 2).sum(-1)
+    assert torch.isfinite(fused[0]).all() and torch.equal(fused[0], ref[0])
+    assert not torch.isfinite(fused[1]).all() and not torch.isfinite(ref[1]).all()
+    empty = cp_rank_sum(lines, coords[:0], [False] * 4, "zeros", 2)
+    assert empty.shape == (0, FEATURES)
+    assert all(g.abs().sum() == 0 for g in torch.autograd.grad(empty.sum(), lines))
+
+
 def test_the_cases_left_to_the_line_by_line_path():
     lines = _lines(2, (5, 6, 7, 4), torch.float32)
     coords = _coords(10, torch.float32)
@@ -90,6 +104,11 @@ def test_the_cases_left_to_the_line_by_line_path():
     assert cp_rank_sum(lines[:3], coords.detach(), [False] * 3, "zeros", 2) is None   # 3 lines
     assert cp_rank_sum(lines, coords.detach(), [False, True, False, False], "zeros", 2) is None
     assert not supported([line.to("meta") for line in lines], coords.detach(), [False] * 4)
+    assert cp_rank_sum(lines, coords.detach()[:, :3], [False] * 4, "zeros", 2) is None  # [N, 3]
+    other = _lines(3, (5, 6, 7, 4), torch.float32)            # 12 channels against 8
+    assert cp_rank_sum([*lines[:3], other[3]], coords.detach(), [False] * 4, "zeros", 2) is None
+    with pytest.raises(InputError, match="rank: expected a divisor of the lines' 8 channels"):
+        cp_rank_sum(lines, coords.detach(), [False] * 4, "zeros", 3)
 
 
 def test_the_tensorf_cp_field_fused_equals_the_field_line_by_line(monkeypatch):
