@@ -39,7 +39,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from baselines.interp import corners, vertex_coords
+from baselines.interp import channel_rows, corners, vertex_coords
 from eventrecon.errors import InputError
 from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline
 
@@ -142,11 +142,6 @@ def _backward(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weight
             _axpy(G, p[1], p[3], part, k, p[5])
 
 
-def _table(line: Tensor) -> np.ndarray:
-    """``line [C, R]`` → ``[R, C]`` rows (a view of a channel-last line)."""
-    return line.detach().t().contiguous().numpy()
-
-
 class _CPRankSum(torch.autograd.Function):
     """``(T_x, T_y, T_z, T_t [C, R_a], lower, weights, rank) -> [N, F]``; gradients reach
     the lines only."""
@@ -163,7 +158,7 @@ class _CPRankSum(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
         *lines, lower, weights = ctx.saved_tensors
-        tables = [_table(line) for line in lines]
+        tables = [channel_rows(line).numpy() for line in lines]
         sums = [torch.zeros(t.shape, dtype=lines[0].dtype) for t in tables]     # [R_a, C]
         samples = np.empty((4, tables[0].shape[1]), tables[0].dtype)
         _backward(*tables, _sizes(lines), lower.numpy(), weights.numpy(), ctx.rank,
@@ -182,8 +177,8 @@ def _read(lines: Sequence[Tensor], lower: Tensor, weights: Tensor, rank: int) ->
     c = lines[0].shape[0]
     out = lines[0].new_empty(lower.shape[0], c // rank)
     dtype = out.numpy().dtype
-    _forward(*(_table(line) for line in lines), _sizes(lines), lower.numpy(), weights.numpy(),
-             rank, out.numpy(), np.empty((4, c), dtype), np.empty(c, dtype))
+    _forward(*(channel_rows(line).numpy() for line in lines), _sizes(lines), lower.numpy(),
+             weights.numpy(), rank, out.numpy(), np.empty((4, c), dtype), np.empty(c, dtype))
     return out
 
 

@@ -46,7 +46,7 @@ from torch import Tensor
 from eventrecon.errors import InputError
 from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline
 
-__all__ = ["corners", "interpolate", "supported", "vertex_coords"]
+__all__ = ["channel_rows", "corners", "interpolate", "supported", "vertex_coords"]
 
 
 def vertex_coords(coords: Tensor, sizes: tuple[int, ...], align_corners: bool,
@@ -138,7 +138,7 @@ def _scatter(grad: Any, sizes: Any, lower: Any, weights: Any, table: Any) -> Non
                     table[row, ch] += w * grad[n, ch]
 
 
-def _table(grid: Tensor) -> Tensor:
+def channel_rows(grid: Tensor) -> Tensor:
     """``grid [C, *R]`` → ``[Π R, C]``, channel-last rows (a view when the grid is stored
     channel-last, :func:`~baselines.grids.channels_last`)."""
     return grid.detach().movedim(0, -1).reshape(-1, grid.shape[0]).contiguous()
@@ -149,7 +149,7 @@ def _read(grid: Tensor, lower: Tensor, weights: Tensor) -> Tensor:
     point with a non-finite coordinate (as ``grid_sample`` with zero padding gives)."""
     out = grid.new_empty(lower.shape[0], grid.shape[0])
     sizes = torch.tensor(grid.shape[1:], dtype=torch.long)
-    _gather(_table(grid).numpy(), sizes.numpy(), lower.numpy(), weights.numpy(), out.numpy())
+    _gather(channel_rows(grid).numpy(), sizes.numpy(), lower.numpy(), weights.numpy(), out.numpy())
     return out
 
 

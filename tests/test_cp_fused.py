@@ -29,6 +29,13 @@ def _coords(n: int, dtype: torch.dtype, seed: int = 1) -> torch.Tensor:
     return c
 
 
+def _by_line(lines, coords, align: bool, padding: str, rank: int) -> torch.Tensor:
+    """The rank sum as the field computes it without fusion: each line sampled by
+    ``baselines.interp``, then the products and ``Tensor.sum``."""
+    s = [sample_points(line, coords[:, a:a + 1], align, padding) for a, line in enumerate(lines)]
+    return (s[0] * s[1] * s[2] * s[3]).reshape(-1, FEATURES, rank).sum(-1)
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("rank,sizes", [(1, (4, 3, 5, 2)), (3, (7, 5, 9, 4)),
                                         (16, (40, 23, 16, 24))])
@@ -43,10 +50,7 @@ def test_gradients_equal_line_by_line_and_values_agree(dtype, rank, sizes, align
     g_fused = torch.autograd.grad((fused * w).sum(), lines)
     samples = [sample_grid_reference(line, coords[:, a:a + 1], align, padding).t()
                for a, line in enumerate(lines)]
-    # line by line as the field samples: baselines.interp, then the products and the sum
-    by_line = [sample_points(line, coords[:, a:a + 1], align, padding)
-               for a, line in enumerate(lines)]
-    ref = (by_line[0] * by_line[1] * by_line[2] * by_line[3]).reshape(-1, FEATURES, rank).sum(-1)
+    ref = _by_line(lines, coords, align, padding, rank)
     g_ref = torch.autograd.grad((ref * w).sum(), lines)
     for a, b in zip(g_fused, g_ref):
         assert torch.equal(a, b)                                    # the same sums, in order
@@ -66,9 +70,7 @@ def test_a_non_finite_coordinate_reads_nan_as_line_by_line():
     coords[7, 2], coords[9, 0] = float("nan"), float("inf")
     fused = cp_rank_sum(lines, coords, [False] * 4, "zeros", 2)
     assert fused[7].isnan().all() and torch.isfinite(fused[:7]).all()
-    by_line = [sample_points(line, coords[:, a:a + 1], False, "zeros")
-               for a, line in enumerate(lines)]
-    ref = (by_line[0] * by_line[1] * by_line[2] * by_line[3]).reshape(-1, FEATURES, 2).sum(-1)
+    ref = _by_line(lines, coords, False, "zeros", 2)
     assert torch.equal(fused.isnan(), ref.isnan())
     g = torch.autograd.grad(fused[:7].sum(), lines)          # NaN · 0 reaches both alike
     g_ref = torch.autograd.grad(ref[:7].sum(), lines)
@@ -85,9 +87,7 @@ def test_a_vertex_outside_a_line_is_not_read():
     with torch.no_grad():
         lines[0][:, 0] = float("inf")
     fused = cp_rank_sum(lines, coords, [False] * 4, "zeros", 2)
-    by_line = [sample_points(line, coords[:, a:a + 1], False, "zeros")
-               for a, line in enumerate(lines)]
-    ref = (by_line[0] * by_line[1] * by_line[2] * by_line[3]).reshape(-1, FEATURES, 2).sum(-1)
+    ref = _by_line(lines, coords, False, "zeros", 2)
     assert torch.isfinite(fused[0]).all() and torch.equal(fused[0], ref[0])
     assert not torch.isfinite(fused[1]).all() and not torch.isfinite(ref[1]).all()
     empty = cp_rank_sum(lines, coords[:0], [False] * 4, "zeros", 2)
