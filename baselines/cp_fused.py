@@ -19,10 +19,14 @@ products are ``[N, C]`` tensors that stream through memory (at 39 040 points and
 ``C = 64``, 10 MB each): the products and their gradients were ~16 of ~30 ms of the
 fields' forward and backward. Here one compiled loop per pass reads the four small lines
 (in cache) and writes ``[N, F]``; the samples are recomputed in the backward pass.
+With two or more torch threads the points are split into ranges run on numba's threads
+(:func:`eventrecon.sim.jit.parts`), each range scattering into its own copy of the lines'
+gradients, summed at the end.
 
 The samples and products are computed with the same expressions, in the same order, as
 line-by-line sampling followed by ``s_x * s_y * s_z * s_t`` and autograd's products, so
-the lines' gradients are the same to the bit; the forward's rank sum runs in another
+on one thread the lines' gradients are the same to the bit (split between threads, to
+the rounding of the ranges' sum); the forward's rank sum runs in another
 order than ``Tensor.sum``, so ``o`` agrees to rounding. A point with a non-finite
 coordinate reads NaN there, as line by line. The backward pass reads the lines again, so
 a line changed in place between the passes raises autograd's version error. Where
@@ -41,9 +45,12 @@ from torch import Tensor
 
 from baselines.interp import channel_rows, corners, vertex_coords
 from eventrecon.errors import InputError
-from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline
+from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline, njit_parallel, parts, prange
 
-__all__ = ["cp_rank_sum", "supported"]
+__all__ = ["GRAIN", "cp_rank_sum", "supported"]
+
+#: Points per range, at least, when a pass is split between threads (:func:`parts`).
+GRAIN = 4096
 
 
 @njit_inline
@@ -142,6 +149,32 @@ def _backward(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weight
             _axpy(G, p[1], p[3], part, k, p[5])
 
 
+@njit_parallel
+def _forward_parts(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weights: Any,
+                   rank: int, out: Any, s: Any, prod: Any) -> None:
+    """:func:`_forward` on ``P`` equal ranges of the points at once, ``s [P, 4, C]`` and
+    ``prod [P, C]`` each range's scratch (the same values)."""
+    n, p = lower.shape[0], s.shape[0]
+    for k in prange(p):
+        a, b = n * k // p, n * (k + 1) // p
+        _forward(T0, T1, T2, T3, sizes, lower[a:b], weights[a:b], rank, out[a:b], s[k],
+                 prod[k])
+
+
+@njit_parallel
+def _backward_parts(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weights: Any,
+                    rank: int, grad: Any, G0: Any, G1: Any, G2: Any, G3: Any, s: Any,
+                    part: Any) -> None:
+    """:func:`_backward` on ``P`` equal ranges of the points at once, range ``k`` into its
+    own ``G_a[k]`` (``G_a [P, R_a, C]``; their sum over ``k`` is the gradient) with
+    scratch ``s[k], part[k]`` (``[P, 4, C]``)."""
+    n, p = lower.shape[0], s.shape[0]
+    for k in prange(p):
+        a, b = n * k // p, n * (k + 1) // p
+        _backward(T0, T1, T2, T3, sizes, lower[a:b], weights[a:b], rank, grad[a:b], G0[k],
+                  G1[k], G2[k], G3[k], s[k], part[k])
+
+
 class _CPRankSum(torch.autograd.Function):
     """``(T_x, T_y, T_z, T_t [C, R_a], lower, weights, rank) -> [N, F]``; gradients reach
     the lines only."""
@@ -159,12 +192,18 @@ class _CPRankSum(torch.autograd.Function):
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
         *lines, lower, weights = ctx.saved_tensors
         tables = [channel_rows(line).numpy() for line in lines]
-        sums = [torch.zeros(t.shape, dtype=lines[0].dtype) for t in tables]     # [R_a, C]
-        samples = np.empty((4, tables[0].shape[1]), tables[0].dtype)
-        _backward(*tables, _sizes(lines), lower.numpy(), weights.numpy(), ctx.rank,
-                  grad.contiguous().numpy(), *(s.numpy() for s in sums), samples,
-                  np.empty_like(samples))
-        return (*(s.t() for s in sums), None, None, None)
+        # each range scatters into its own copy of the lines: worth it while the points
+        # outnumber the lines' rows
+        p = parts(lower.shape[0], grain=max(GRAIN, sum(t.shape[0] for t in tables)))
+        sums = [torch.zeros((p, *t.shape), dtype=lines[0].dtype) for t in tables]  # [P, R_a, C]
+        samples = np.empty((p, 4, tables[0].shape[1]), tables[0].dtype)
+        args = (*tables, _sizes(lines), lower.numpy(), weights.numpy(), ctx.rank,
+                grad.contiguous().numpy())
+        if p == 1:
+            _backward(*args, *(s[0].numpy() for s in sums), samples[0], np.empty_like(samples[0]))
+            return (*(s[0].t() for s in sums), None, None, None)
+        _backward_parts(*args, *(s.numpy() for s in sums), samples, np.empty_like(samples))
+        return (*(s.sum(0).t() for s in sums), None, None, None)
 
 
 def _sizes(lines: Sequence[Tensor]) -> np.ndarray:
@@ -177,8 +216,13 @@ def _read(lines: Sequence[Tensor], lower: Tensor, weights: Tensor, rank: int) ->
     c = lines[0].shape[0]
     out = lines[0].new_empty(lower.shape[0], c // rank)
     dtype = out.numpy().dtype
-    _forward(*(channel_rows(line).numpy() for line in lines), _sizes(lines), lower.numpy(),
-             weights.numpy(), rank, out.numpy(), np.empty((4, c), dtype), np.empty(c, dtype))
+    p = parts(lower.shape[0], GRAIN)
+    args = (*(channel_rows(line).numpy() for line in lines), _sizes(lines), lower.numpy(),
+            weights.numpy(), rank, out.numpy())
+    if p == 1:
+        _forward(*args, np.empty((4, c), dtype), np.empty(c, dtype))
+    else:
+        _forward_parts(*args, np.empty((p, 4, c), dtype), np.empty((p, c), dtype))
     return out
 
 

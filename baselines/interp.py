@@ -21,10 +21,13 @@ costs ``C`` strided reads, and its backward accumulates one batch entry per thre
 a full-size gradient buffer. Here the grid is read channel-last (``[R_0, …, C]``, one
 contiguous row of ``C`` values per vertex; the factors are stored so on a CPU,
 :func:`~baselines.grids.device_layout`) at its ``2^d`` corners by compiled loops
-(numba), on one thread. At 13 000 points, forward and backward, a 128² plane of 32
-channels takes 2.3 ms against 7.2 ms, a line 3.5–4.9× less (docs/results/history.md,
-"Session 50"). Splitting the points between two threads was slower, as torch's OpenMP
-workers keep spinning between ops.
+(numba). At 13 000 points, forward and backward, a 128² plane of 32 channels takes
+2.3 ms against 7.2 ms on one thread, a line 3.5–4.9× less (docs/results/history.md,
+"Session 50"). With two or more torch threads the points are split into ranges run on
+numba's threads (:func:`eventrecon.sim.jit.parts`; HexPlane's training step 1.16×
+faster on 2 cores, "Session 57"), the backward's ranges each scattering into their own
+copy of the grid's gradient while the points' corners outnumber its vertices; the copies
+are summed, so the gradient then agrees with one thread's to rounding.
 
 The values are the corner gather's: ``grid_sample``'s up to the rounding of the weights.
 A point with a non-finite coordinate reads NaN, as with ``grid_sample``'s zero padding
@@ -44,9 +47,12 @@ import torch
 from torch import Tensor
 
 from eventrecon.errors import InputError
-from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline
+from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline, njit_parallel, parts, prange
 
-__all__ = ["channel_rows", "corners", "interpolate", "supported", "vertex_coords"]
+__all__ = ["GRAIN", "channel_rows", "corners", "interpolate", "supported", "vertex_coords"]
+
+#: Points per range, at least, when a pass is split between threads (:func:`parts`).
+GRAIN = 4096
 
 
 def vertex_coords(coords: Tensor, sizes: tuple[int, ...], align_corners: bool,
@@ -138,6 +144,25 @@ def _scatter(grad: Any, sizes: Any, lower: Any, weights: Any, table: Any) -> Non
                     table[row, ch] += w * grad[n, ch]
 
 
+@njit_parallel
+def _gather_parts(table: Any, sizes: Any, lower: Any, weights: Any, out: Any, p: int) -> None:
+    """:func:`_gather` on ``p`` equal ranges of the points at once (the same values)."""
+    n = lower.shape[0]
+    for k in prange(p):
+        a, b = n * k // p, n * (k + 1) // p
+        _gather(table, sizes, lower[a:b], weights[a:b], out[a:b])
+
+
+@njit_parallel
+def _scatter_parts(grad: Any, sizes: Any, lower: Any, weights: Any, tables: Any) -> None:
+    """:func:`_scatter` on ``P`` equal ranges of the points at once, range ``k`` into
+    ``tables[k]`` (``[P, Π R, C]``; their sum over ``k`` is the gradient)."""
+    n, p = lower.shape[0], tables.shape[0]
+    for k in prange(p):
+        a, b = n * k // p, n * (k + 1) // p
+        _scatter(grad[a:b], sizes, lower[a:b], weights[a:b], tables[k])
+
+
 def channel_rows(grid: Tensor) -> Tensor:
     """``grid [C, *R]`` → ``[Π R, C]``, channel-last rows (a view when the grid is stored
     channel-last, :func:`~baselines.grids.channels_last`)."""
@@ -149,7 +174,13 @@ def _read(grid: Tensor, lower: Tensor, weights: Tensor) -> Tensor:
     point with a non-finite coordinate (as ``grid_sample`` with zero padding gives)."""
     out = grid.new_empty(lower.shape[0], grid.shape[0])
     sizes = torch.tensor(grid.shape[1:], dtype=torch.long)
-    _gather(channel_rows(grid).numpy(), sizes.numpy(), lower.numpy(), weights.numpy(), out.numpy())
+    args = (channel_rows(grid).numpy(), sizes.numpy(), lower.numpy(), weights.numpy(),
+            out.numpy())
+    p = parts(lower.shape[0], GRAIN)
+    if p == 1:
+        _gather(*args)
+    else:
+        _gather_parts(*args, p)
     return out
 
 
@@ -167,9 +198,18 @@ class _Interpolate(torch.autograd.Function):
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None, None]:  # type: ignore[override]
         lower, weights = ctx.saved_tensors
         c, *sizes = ctx.grid_shape
-        table = grad.new_zeros(math.prod(sizes), c)                      # [Π R, C]
-        _scatter(grad.contiguous().numpy(), torch.tensor(sizes, dtype=torch.long).numpy(),
-                 lower.numpy(), weights.numpy(), table.numpy())
+        rows = math.prod(sizes)
+        # a copy of the gradient per range: worth it while the corners outnumber the rows
+        p = parts(lower.shape[0], grain=max(GRAIN, rows >> lower.shape[1]))
+        tables = grad.new_zeros(p, rows, c)                                # [P, Π R, C]
+        args = (grad.contiguous().numpy(), torch.tensor(sizes, dtype=torch.long).numpy(),
+                lower.numpy(), weights.numpy())
+        if p == 1:
+            _scatter(*args, tables[0].numpy())
+            table = tables[0]
+        else:
+            _scatter_parts(*args, tables.numpy())
+            table = tables.sum(0)
         return table.reshape(*sizes, c).movedim(-1, 0), None, None
 
 

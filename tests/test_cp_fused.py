@@ -1,6 +1,7 @@
 """TensoRF-CP's fused rank sum of four line products (baselines.cp_fused): the same
 gradients as sampling line by line, to the bit; values to rounding, and against an
-independent fp64 reference; the cases it leaves to the line-by-line path."""
+independent fp64 reference; split between two threads, the halves' gradients summed;
+the cases it leaves to the line-by-line path."""
 
 from __future__ import annotations
 
@@ -9,10 +10,11 @@ import torch
 
 import baselines.tensorf_cp as tensorf_cp
 from baselines import TensoRFCPField
-from baselines.cp_fused import cp_rank_sum, supported
+from baselines.cp_fused import GRAIN, cp_rank_sum, supported
 from baselines.factorised import FEATURES
 from baselines.grids import channels_last, sample_grid_reference, sample_points
 from eventrecon.errors import InputError
+from eventrecon.sim.jit import numba_threads, parts
 from eventrecon.sim.pipeline import torch_threads
 
 
@@ -129,3 +131,30 @@ def test_the_tensorf_cp_field_fused_equals_the_field_line_by_line(monkeypatch):
     assert torch.allclose(s1, s2, rtol=1e-5) and torch.allclose(c1, c2, rtol=1e-5, atol=1e-7)
     for a, b in zip(g1, g2):
         assert torch.allclose(a, b, rtol=1e-4, atol=1e-7)
+
+
+@pytest.mark.skipif(numba_threads() < 2, reason="numba has one thread here")
+def test_split_between_two_threads_same_values_and_the_halves_gradients_summed():
+    """With two torch threads the points run as two ranges on numba's threads: the same
+    values to the bit, and the lines' gradients exactly the sum of each half's
+    one-thread gradient (the ranges scatter into their own copies, added once)."""
+    n = 4 * GRAIN
+    lines = _lines(16, (40, 23, 16, 24), torch.float32)
+    coords = _coords(n, torch.float32)
+    w = torch.randn(n, FEATURES, generator=torch.Generator().manual_seed(2))
+
+    def run(rows: slice) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
+        out = cp_rank_sum(lines, coords[rows], [False] * 4, "zeros", 16)
+        return out.detach(), torch.autograd.grad((out * w[rows]).sum(), lines)
+
+    with torch_threads(1):
+        one, _ = run(slice(None))
+        halves = [run(slice(0, n // 2))[1], run(slice(n // 2, n))[1]]
+    with torch_threads(2):
+        assert parts(n, GRAIN) == 2
+        two, g_two = run(slice(None))
+        with torch.no_grad():
+            assert torch.equal(cp_rank_sum(lines, coords, [False] * 4, "zeros", 16), one)
+    assert torch.equal(two, one)
+    for a, b0, b1 in zip(g_two, *halves):
+        assert torch.equal(a, b0 + b1)

@@ -10,8 +10,9 @@ import torch
 import baselines.grids as grids
 import baselines.tensorf_cp as tensorf_cp
 from baselines import HexPlaneField, TensoRFCPField
-from baselines.interp import corners, interpolate, supported
+from baselines.interp import GRAIN, corners, interpolate, supported
 from eventrecon.errors import InputError
+from eventrecon.sim.jit import numba_threads, parts
 from eventrecon.sim.pipeline import torch_threads
 
 
@@ -225,3 +226,28 @@ def test_a_grown_float64_field_reloads_in_float64():
     for a, b in zip(fresh.grids.factors, grown.grids.factors):
         assert a.dtype == torch.float64 and torch.equal(a, b)
         assert a.movedim(0, -1).is_contiguous()
+
+
+@pytest.mark.skipif(numba_threads() < 2, reason="numba has one thread here")
+@pytest.mark.parametrize("shape", [(8, 64, 64), (6, 500)])
+def test_split_between_two_threads_same_values_and_the_halves_gradients_summed(shape):
+    """With two torch threads the points run as two ranges on numba's threads: the same
+    values to the bit, and the grid's gradient exactly the sum of each half's one-thread
+    gradient (each range scatters into its own copy, added once)."""
+    n = 4 * GRAIN
+    grid, coords = _case(shape, n, 3)
+    grid.requires_grad_(True)
+    w = torch.randn(n, shape[0], generator=torch.Generator().manual_seed(4))
+
+    def run(rows: slice) -> tuple[torch.Tensor, torch.Tensor]:
+        out = interpolate(grid, coords[rows], False, "zeros")
+        return out.detach(), torch.autograd.grad((out * w[rows]).sum(), grid)[0]
+
+    one, _ = run(slice(None))
+    halves = run(slice(0, n // 2))[1] + run(slice(n // 2, n))[1]
+    with torch_threads(2):
+        assert parts(n, GRAIN) == 2
+        two, g_two = run(slice(None))
+        with torch.no_grad():
+            assert torch.equal(interpolate(grid, coords, False, "zeros"), one)
+    assert torch.equal(two, one) and torch.equal(g_two, halves)

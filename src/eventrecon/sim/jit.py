@@ -32,8 +32,11 @@ try:
 except ImportError:                              # pragma: no cover - numba is a dependency
     numba = None
 
+#: ``numba.prange`` (``range`` without numba): the parallel loop of :func:`njit_parallel`.
+prange = range if numba is None else numba.prange
+
 __all__ = ["AVAILABLE", "SOURCES", "drop_stale_cache", "njit", "njit_borrowing",
-           "njit_inline"]
+           "njit_inline", "njit_parallel", "numba_threads", "parts", "prange"]
 
 #: Whether numba could be imported.
 AVAILABLE = numba is not None
@@ -87,3 +90,35 @@ def njit_inline(fn: Callable) -> Callable:
 def njit_borrowing(fn: Callable) -> Callable:
     """:func:`njit` with ``nrt=False`` (a decorator; see the module docstring)."""
     return njit(fn, nrt=False)
+
+
+def njit_parallel(fn: Callable) -> Callable:
+    """:func:`njit` with ``parallel=True``: its ``prange`` loop runs on numba's threads (a
+    decorator; see the module docstring)."""
+    if numba is None:                            # pragma: no cover
+        return fn
+    return numba.njit(cache=True, error_model="numpy", nogil=True, parallel=True)(fn)
+
+
+def numba_threads() -> int:
+    """numba's thread count (``NUMBA_NUM_THREADS``: the CPU's cores unless set); 1
+    without numba."""
+    return 1 if numba is None else int(numba.config.NUMBA_NUM_THREADS)
+
+
+def parts(n: int, grain: int = 4096) -> int:
+    """How many ranges to split ``n`` independent items into for an :func:`njit_parallel`
+    loop: ``min(torch threads, numba threads, n // grain)``, at least 1 (1: call the
+    serial kernel instead). Sets numba's thread count of the calling thread to it.
+
+    >>> parts(10)
+    1
+    """
+    if numba is None:                            # pragma: no cover
+        return 1
+    import torch
+
+    k = max(1, min(torch.get_num_threads(), numba_threads(), n // grain))
+    if k > 1:
+        numba.set_num_threads(k)
+    return k
