@@ -234,34 +234,43 @@ class DecayedEvents:
     def window_all(self, t0: float, t1: float) -> Tensor:
         """``E(t0, t1)`` of every pixel of every view: ``[V, H, W]`` float64.
 
-        Used each iteration to find the pixels with events in the window. Only pixels with
-        an event between the two times can have ``E ≠ 0`` (elsewhere both lookups find the
-        same event, and ``V − V`` is exactly 0), so they alone are looked up: the events
-        in time order make them one slice (:attr:`_time_order`). The same values as
+        Used each iteration to find the pixels with events in the window. Only a pixel
+        with an event between the two times can have ``E ≠ 0``, and its events there are
+        one run of its CSR row: with ``lo, hi`` their first and last position,
+        ``V(max(t0, t1)) = values[hi]`` and ``V(min(t0, t1)) = values[lo − 1]`` (0 when
+        ``lo`` starts the row). The events in time order make the window's events one
+        slice (:attr:`_time_order`), whose positions give ``lo, hi`` per pixel by a
+        scatter of their minimum and maximum: no search. The same values as
         :meth:`window` on every pixel, to the bit.
         """
         out = torch.zeros(self.n_pixels, dtype=torch.float64, device=self.device)
         r0, r1 = sorted(int(self._rank(t, torch.Size([1]))[0]) for t in (t0, t1))
         if self.n_events:
-            ranks, pixels = self._time_order
+            ranks, pixels, positions = self._time_order
             bounds = torch.tensor([r0, r1], dtype=ranks.dtype, device=self.device)
             a, b = torch.searchsorted(ranks, bounds, right=True).tolist()
-            seen = torch.zeros(self.n_pixels, dtype=torch.bool, device=self.device)
-            seen[pixels[a:b]] = True
-            pix = seen.nonzero().squeeze(1)
-            out[pix] = self.window(pix, t0, t1)
+            pix, pos = pixels[a:b].long(), positions[a:b].long()
+            hi = torch.full_like(out, -1, dtype=torch.int64).scatter_reduce_(0, pix, pos, "amax")
+            lo = torch.full_like(hi, self.n_events).scatter_reduce_(0, pix, pos, "amin")
+            touched = (hi >= 0).nonzero().squeeze(1)
+            lo, hi = lo[touched], hi[touched]
+            later = self.values[hi]
+            earlier = torch.where(lo > self.offsets[touched], self.values[(lo - 1).clamp_min(0)],
+                                  0.0)
+            out[touched] = later - earlier if t0 <= t1 else earlier - later
         return out.reshape(self.n_views, self.height, self.width)
 
     @functools.cached_property
-    def _time_order(self) -> tuple[Tensor, Tensor]:
+    def _time_order(self) -> tuple[Tensor, Tensor, Tensor]:
         """The events in time order: ``rank + 1`` (the ``r`` of :meth:`_lookup` from which
-        an event counts) ascending, and each event's pixel (``[n]`` each; int32 where
-        both fit, 8 bytes per event kept for the object's life, else int64)."""
+        an event counts) ascending, each event's pixel and its position in :attr:`keys`
+        (``[n]`` each; int32 where all fit, 12 bytes per event kept for the object's
+        life, else int64)."""
         stride = self.times.shape[0] + 1
-        small = max(stride, self.n_pixels) < 2**31
+        small = max(stride, self.n_pixels, self.n_events) < 2**31
         ranks, order = torch.sort(self.keys % stride, stable=True)
         pixels = self.keys[order] // stride
-        return (ranks.int(), pixels.int()) if small else (ranks, pixels)
+        return (ranks.int(), pixels.int(), order.int()) if small else (ranks, pixels, order)
 
     def _check_pix(self, pix: Tensor) -> Tensor:
         pix = pix.to(device=self.device, dtype=torch.int64)
