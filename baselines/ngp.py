@@ -18,7 +18,9 @@ All levels share one flat table with per-level offsets; the 16 corners and all l
 of one kind (dense / hashed) are computed at once, then every level is gathered by one
 ``embedding_bag`` (weighted sum of 16 rows) with a hand-written backward (one weighted
 ``bincount`` per feature on CPU, ``index_add_`` elsewhere); ``compile=True``
-runs the index/weight computation through ``torch.compile``. Gradients flow to the table
+runs the index/weight computation through ``torch.compile``. On a CPU with numba the
+rows, weights, gather and scatter run instead in compiled loops, level by level
+(:mod:`baselines.hash_cpu`: the same values to rounding). Gradients flow to the table
 and the MLPs, not to the input coordinates (no loss of the method needs them).
 
 The field (:class:`NGPField`) feeds the grid as the authors' code does: their
@@ -42,6 +44,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+import baselines.hash_cpu as hash_cpu
 from baselines.heads import NGPDecoder
 from baselines.schedules import CylinderAnneal
 from eventrecon.errors import InputError
@@ -125,6 +128,8 @@ class HashEncoding(nn.Module):
         gen = torch.Generator().manual_seed(seed)
         table = (torch.rand(self.offsets[-1], n_features, generator=gen) * 2 - 1) * init_scale
         self.table = nn.Parameter(table)
+        self.plan = hash_cpu.Plan(self.axis_resolutions, self.dense, self.offsets,
+                                  self.table_size, PRIMES)
         self.use_compiled = False
         self._compiled: Any = None
         # per-level constants for the vectorised paths (buffers follow .to(device))
@@ -199,11 +204,17 @@ class HashEncoding(nn.Module):
     def forward(self, u: Tensor) -> Tensor:
         """``u [N, D] -> [N, L * F]`` (level-major: level ``l`` at ``[:, l F:(l + 1) F]``).
 
-        With ``use_compiled`` the corner indices and weights come from a ``torch.compile``d
-        version of :meth:`all_corners` (one fused loop instead of ~40 tensor ops); the gather
-        (``embedding_bag``) and its scatter-add backward stay eager.
+        On a CPU with numba the compiled loops of :mod:`baselines.hash_cpu` do it all
+        (unless ``use_compiled``). With ``use_compiled`` the corner indices and weights
+        come from a ``torch.compile``d version of :meth:`all_corners` (one fused loop
+        instead of ~40 tensor ops); the gather (``embedding_bag``) and its scatter-add
+        backward stay eager.
         """
         u = u.float()
+        if not self.use_compiled:
+            fused = hash_cpu.encode(self.table, u, self.plan)
+            if fused is not None:
+                return fused
         fn = self.all_corners
         if self.use_compiled:
             if self._compiled is None:

@@ -1,11 +1,25 @@
-"""The 4D hash encoding against a slow reference, exactness at dense levels, index safety."""
+"""The 4D hash encoding against a slow reference, exactness at dense levels, index safety;
+the compiled CPU loops (baselines.hash_cpu) against the eager tensor path."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
+from baselines import hash_cpu
 from baselines.ngp import PRIMES, HashEncoding, NGPField, hash_encode_reference
+from eventrecon.sim.jit import AVAILABLE, numba_threads, parts
+from eventrecon.sim.pipeline import torch_threads
+
+
+@pytest.fixture(params=["compiled", "eager"])
+def path(request, monkeypatch) -> str:
+    """Both implementations: the compiled loops where they serve, and the tensor path."""
+    if request.param == "compiled" and not AVAILABLE:
+        pytest.skip("no numba")
+    if request.param == "eager":
+        monkeypatch.setattr(hash_cpu, "encode", lambda *a, **k: None)
+    return request.param
 
 
 def _random_table(enc: HashEncoding, seed: int = 0) -> None:
@@ -33,7 +47,7 @@ def test_paper_configuration_levels():
     assert enc.offsets[-1] == 9**4 + 17**4 + 6 * 2**19
 
 
-def test_matches_slow_reference():
+def test_matches_slow_reference(path):
     """Vectorised encoding == explicit loops over levels and 16 corners, to 1e-6."""
     enc = HashEncoding(log2_table_size=16, n_levels=6, base_resolution=4, per_level_scale=1.7)
     _random_table(enc)
@@ -44,7 +58,7 @@ def test_matches_slow_reference():
     assert (got - ref).abs().max().item() <= 1e-6
 
 
-def test_gradient_matches_reference():
+def test_gradient_matches_reference(path):
     """The hand-written scatter-add backward equals autograd through the reference."""
     enc = HashEncoding(log2_table_size=12, n_levels=4, base_resolution=3)
     _random_table(enc)
@@ -55,7 +69,7 @@ def test_gradient_matches_reference():
     assert (g1 - g2).abs().max().item() <= 1e-5
 
 
-def test_dense_vertices_return_stored_features_exactly():
+def test_dense_vertices_return_stored_features_exactly(path):
     enc = HashEncoding(log2_table_size=17, n_levels=2, base_resolution=8)  # R = 8, 16 dense
     _random_table(enc)
     g = torch.Generator().manual_seed(3)
@@ -143,3 +157,55 @@ def test_compiled_encoder_matches_eager():
     eager = enc(u)
     enc.use_compiled = True
     assert (enc(u) - eager).abs().max().item() <= 1e-6
+
+
+def _paper_cpu_encoding() -> HashEncoding:
+    """The CPU NGP's encoding (2^17 rows, space at twice the cells), a random table."""
+    enc = HashEncoding(4, 8, 2, 17, 8, 2.0, 1e-4, 0, axis_scale=(2.0, 2.0, 2.0, 1.0))
+    _random_table(enc)
+    return enc
+
+
+@pytest.mark.skipif(not AVAILABLE, reason="no numba")
+def test_compiled_loops_equal_the_eager_path_values_and_gradient(monkeypatch):
+    """At the CPU NGP's sizes (a dense level and seven hashed ones), on points at and
+    beyond the box: the same values to 2e-7, the same table gradient to 1e-6 relative."""
+    enc = _paper_cpu_encoding()
+    assert enc.dense[0] and not any(enc.dense[1:])
+    u = _edge_points(6000, seed=5)
+    wts = torch.randn(6000, 16, generator=torch.Generator().manual_seed(6))
+    out, (g,) = enc(u), torch.autograd.grad((enc(u) * wts).sum(), enc.table)
+    monkeypatch.setattr(hash_cpu, "encode", lambda *a, **k: None)
+    ref, (g_ref,) = enc(u), torch.autograd.grad((enc(u) * wts).sum(), enc.table)
+    assert (out - ref).abs().max().item() <= 2e-7
+    assert (g - g_ref).abs().max().item() <= 1e-6 * g_ref.abs().max().item()
+    assert hash_cpu.supported(enc.table, u) and not hash_cpu.supported(enc.table, u.double())
+
+
+@pytest.mark.skipif(not AVAILABLE, reason="no numba")
+def test_compiled_loops_a_nan_coordinate_reads_nan_and_sends_nothing():
+    enc = _paper_cpu_encoding()
+    u = _edge_points(100, seed=7)
+    u[3, 2] = float("nan")
+    out = enc(u)
+    assert out[3].isnan().all() and torch.isfinite(out[torch.arange(100) != 3]).all()
+    (g,) = torch.autograd.grad(out[torch.arange(100) != 3].sum(), enc.table)
+    keep = torch.arange(100) != 3
+    (g_ref,) = torch.autograd.grad(enc(u[keep]).sum(), enc.table)
+    assert torch.equal(g, g_ref)
+
+
+@pytest.mark.skipif(numba_threads() < 2, reason="numba has one thread here")
+def test_compiled_loops_give_the_same_bits_on_one_and_two_threads():
+    """Split between threads (points in the forward, levels in the gradient, which own
+    disjoint table rows) the sums run in the same order: the same bits."""
+    enc = _paper_cpu_encoding()
+    u = _edge_points(3 * 4096, seed=8)
+    wts = torch.randn(u.shape[0], 16, generator=torch.Generator().manual_seed(9))
+    runs = []
+    for threads in (1, 2):
+        with torch_threads(threads):
+            assert parts(u.shape[0]) == threads
+            out = enc(u)
+            runs.append((out.detach(), torch.autograd.grad((out * wts).sum(), enc.table)[0]))
+    assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
