@@ -18,9 +18,10 @@ For level ``l`` of :class:`baselines.ngp.HashEncoding` (``R_{l,k}`` cells along 
 Why: the eager path (:meth:`HashEncoding.all_corners`, ``embedding_bag``, one weighted
 ``bincount`` per feature) builds ``[N, L, 16]`` rows and weights in ~40 tensor ops and
 streams them through memory twice; at 39 040 points of the CPU NGP (8 levels of 2
-features) that is about half of its training step. Here each point's 16 rows and weights
-stay in a scratch row, and the loops run level by level, so one level's table (1 MB at
-2^17 rows) stays in cache while every point reads it. With two or more torch threads
+features) that is about half of its training step. Here a point's 8 per-axis terms sit in
+a scratch row, its 16 rows and weights and its two sums in registers, and the loops run
+level by level, so one level's table (1 MB at 2^17 rows) stays in cache while every
+point reads it. With two or more torch threads
 the work is split between numba's threads (:func:`eventrecon.sim.jit.parts`): the
 forward by points, the gradient by levels, which own disjoint table rows, so neither
 needs a reduction and both give the same bits at any thread count.
@@ -29,9 +30,10 @@ The rows and weights are those of the eager path, computed with the same float32
 expressions; the sums run in corner order, so the values agree with ``embedding_bag``'s
 to rounding, and the gradient, accumulated in float32 (``bincount`` sums in float64),
 to rounding as well. A point with a NaN coordinate reads NaN at every level and sends
-no gradient (the eager path would index out of the table). Where :func:`supported` is
-false (a GPU, no numba, float64, coordinates that need a gradient) :func:`encode` returns
-``None`` and the caller takes the eager path.
+no gradient (the eager path would index out of the table). The loops are written for
+the NGP field's 4 axes and 2 features; where :func:`supported` is false (other sizes, a
+GPU, no numba, float64, coordinates that need a gradient) :func:`encode` returns ``None``
+and the caller takes the eager path.
 """
 
 from __future__ import annotations
