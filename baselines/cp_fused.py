@@ -45,12 +45,17 @@ from torch import Tensor
 
 from baselines.interp import channel_rows, corners, vertex_coords
 from eventrecon.errors import InputError
-from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline, njit_parallel, parts, prange
+from eventrecon.sim.jit import (
+    AVAILABLE,
+    GRAIN,
+    njit_borrowing,
+    njit_inline,
+    njit_parallel,
+    parts,
+    prange,
+)
 
-__all__ = ["GRAIN", "cp_rank_sum", "supported"]
-
-#: Points per range, at least, when a pass is split between threads (:func:`parts`).
-GRAIN = 4096
+__all__ = ["cp_rank_sum", "supported"]
 
 
 @njit_inline
@@ -175,6 +180,11 @@ def _backward_parts(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, 
                   G1[k], G2[k], G3[k], s[k], part[k])
 
 
+#: Unused channels at the end of each range's scratch rows, so that two threads never
+#: write one cache line (64 bytes, 16 float32).
+_PAD = 16
+
+
 class _CPRankSum(torch.autograd.Function):
     """``(T_x, T_y, T_z, T_t [C, R_a], lower, weights, rank) -> [N, F]``; gradients reach
     the lines only."""
@@ -196,7 +206,7 @@ class _CPRankSum(torch.autograd.Function):
         # outnumber the lines' rows
         p = parts(lower.shape[0], grain=max(GRAIN, sum(t.shape[0] for t in tables)))
         sums = [torch.zeros((p, *t.shape), dtype=lines[0].dtype) for t in tables]  # [P, R_a, C]
-        samples = np.empty((p, 4, tables[0].shape[1]), tables[0].dtype)
+        samples = np.empty((p, 4, tables[0].shape[1] + _PAD), tables[0].dtype)
         args = (*tables, _sizes(lines), lower.numpy(), weights.numpy(), ctx.rank,
                 grad.contiguous().numpy())
         if p == 1:
@@ -222,7 +232,7 @@ def _read(lines: Sequence[Tensor], lower: Tensor, weights: Tensor, rank: int) ->
     if p == 1:
         _forward(*args, np.empty((4, c), dtype), np.empty(c, dtype))
     else:
-        _forward_parts(*args, np.empty((p, 4, c), dtype), np.empty((p, c), dtype))
+        _forward_parts(*args, np.empty((p, 4, c + _PAD), dtype), np.empty((p, c + _PAD), dtype))
     return out
 
 

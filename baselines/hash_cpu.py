@@ -140,7 +140,11 @@ def _scatter_parts(u: Any, res: Any, mult: Any, hashed: Any, offset: Any, mask: 
 
 
 class Plan:
-    """An encoding's per-level constants as numpy arrays, for the compiled loops.
+    """An encoding's per-level constants as numpy arrays, for the compiled loops: ``res``
+    and ``mult`` ``[L, D]`` int64 (``R_{l,k}``; ``m_k``, the dense strides or the primes),
+    ``hashed [L]`` bool, ``offset [L]`` int32 (``o_l``), ``mask`` (``T − 1``) and ``rows``
+    (the table's rows in all, which :func:`supported` checks the table against: the loops
+    do not check their indices).
 
     Args:
         axis_resolutions: ``R_{l,k}`` per level and axis.
@@ -163,6 +167,7 @@ class Plan:
         self.hashed = hashed
         self.offset = np.array(offsets[:n_levels], dtype=np.int32)
         self.mask = int(table_size - 1)
+        self.rows = int(offsets[n_levels])
 
     def scratch(self, p: int) -> tuple[np.ndarray, np.ndarray]:
         """Each range's per-axis terms, int32 and float32, in rows of 128 bytes (``[P,
@@ -171,6 +176,7 @@ class Plan:
         return np.empty((p, 32), np.int32), np.empty((p, 32), np.float32)
 
     def args(self) -> tuple:
+        """The constants in the compiled loops' argument order."""
         return self.res, self.mult, self.hashed, self.offset, self.mask
 
 
@@ -215,21 +221,22 @@ def _run_encode(table: Tensor, u: Tensor, plan: Plan) -> Tensor:
     return out
 
 
-def supported(table: Tensor, u: Tensor) -> bool:
-    """Whether :func:`encode` serves this call: numba present, a float32 table of 2
-    features and ``[N, 4]`` float32 coordinates on the CPU that need no gradient (the
-    NGP field's encoding; other sizes take the eager path)."""
+def supported(table: Tensor, u: Tensor, plan: Plan) -> bool:
+    """Whether :func:`encode` serves this call: numba present, a float32 table of the
+    plan's rows and 2 features, ``[N, 4]`` float32 coordinates on the CPU that need no
+    gradient, a plan of 4 axes (the NGP field's encoding; other sizes take the eager
+    path)."""
     return (AVAILABLE and table.device.type == "cpu" and u.device.type == "cpu"
-            and table.dtype == torch.float32 and table.dim() == 2 and table.shape[1] == 2
+            and table.dtype == torch.float32 and table.shape == (plan.rows, 2)
             and u.dtype == torch.float32 and u.dim() == 2 and u.shape[1] == 4
-            and not (u.requires_grad and torch.is_grad_enabled()))
+            and plan.res.shape[1] == 4 and not (u.requires_grad and torch.is_grad_enabled()))
 
 
 def encode(table: Tensor, u: Tensor, plan: Plan) -> Tensor | None:
     """``[N, L·F]``: the encoding of ``plan`` with ``table [rows, F]`` at ``u [N, D]``
     (module docstring), differentiable with respect to the table; ``None`` where
     :func:`supported` is false."""
-    if not supported(table, u):
+    if not supported(table, u, plan):
         return None
     u = u.detach().contiguous()
     if torch.is_grad_enabled() and table.requires_grad:

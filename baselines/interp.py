@@ -47,12 +47,17 @@ import torch
 from torch import Tensor
 
 from eventrecon.errors import InputError
-from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline, njit_parallel, parts, prange
+from eventrecon.sim.jit import (
+    AVAILABLE,
+    GRAIN,
+    njit_borrowing,
+    njit_inline,
+    njit_parallel,
+    parts,
+    prange,
+)
 
-__all__ = ["GRAIN", "channel_rows", "corners", "interpolate", "supported", "vertex_coords"]
-
-#: Points per range, at least, when a pass is split between threads (:func:`parts`).
-GRAIN = 4096
+__all__ = ["channel_rows", "corners", "interpolate", "supported", "vertex_coords"]
 
 
 def vertex_coords(coords: Tensor, sizes: tuple[int, ...], align_corners: bool,

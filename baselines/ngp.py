@@ -266,7 +266,8 @@ class NGPField(Field):
             ``[-1, 1]`` coordinates, module docstring; 1: space mapped to the grid's box).
         anneal_steps: the cylinder's density mask grows from 0 to 1 over these steps
             (0: none).
-        compile: run the encoder's index computation through ``torch.compile``.
+        compile: run the encoder's index computation through ``torch.compile`` (on a
+            CPU this replaces the compiled loops of :mod:`baselines.hash_cpu`).
         seed: initialisation seed (table and MLPs).
 
     >>> f = NGPField(log2_table_size=12)

@@ -10,11 +10,11 @@ import torch
 
 import baselines.tensorf_cp as tensorf_cp
 from baselines import TensoRFCPField
-from baselines.cp_fused import GRAIN, cp_rank_sum, supported
+from baselines.cp_fused import cp_rank_sum, supported
 from baselines.factorised import FEATURES
 from baselines.grids import channels_last, sample_grid_reference, sample_points
 from eventrecon.errors import InputError
-from eventrecon.sim.jit import numba_threads, parts
+from eventrecon.sim.jit import GRAIN, numba_threads, parts
 from eventrecon.sim.pipeline import torch_threads
 
 
@@ -134,10 +134,17 @@ def test_the_tensorf_cp_field_fused_equals_the_field_line_by_line(monkeypatch):
 
 
 @pytest.mark.skipif(numba_threads() < 2, reason="numba has one thread here")
-def test_split_between_two_threads_same_values_and_the_halves_gradients_summed():
+def test_split_between_two_threads_same_values_and_the_halves_gradients_summed(monkeypatch):
     """With two torch threads the points run as two ranges on numba's threads: the same
     values to the bit, and the lines' gradients exactly the sum of each half's
     one-thread gradient (the ranges scatter into their own copies, added once)."""
+    import baselines.cp_fused as cp_fused
+
+    split = {k: [] for k in ("_forward_parts", "_backward_parts")}
+    for name, calls in split.items():
+        kernel = getattr(cp_fused, name)
+        monkeypatch.setattr(cp_fused, name,
+                            lambda *a, c=calls, f=kernel: (c.append(1), f(*a))[1])
     n = 4 * GRAIN
     lines = _lines(16, (40, 23, 16, 24), torch.float32)
     coords = _coords(n, torch.float32)
@@ -158,3 +165,4 @@ def test_split_between_two_threads_same_values_and_the_halves_gradients_summed()
     assert torch.equal(two, one)
     for a, b0, b1 in zip(g_two, *halves):
         assert torch.equal(a, b0 + b1)
+    assert {k: len(v) for k, v in split.items()} == {"_forward_parts": 2, "_backward_parts": 1}

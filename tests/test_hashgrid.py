@@ -13,13 +13,30 @@ from eventrecon.sim.pipeline import torch_threads
 
 
 @pytest.fixture(params=["compiled", "eager"])
-def path(request, monkeypatch) -> str:
-    """Both implementations: the compiled loops where they serve, and the tensor path."""
+def path(request, monkeypatch):
+    """Both implementations: the compiled loops (asserted to have served a call), and
+    the tensor path."""
     if request.param == "compiled" and not AVAILABLE:
         pytest.skip("no numba")
     if request.param == "eager":
         monkeypatch.setattr(hash_cpu, "encode", lambda *a, **k: None)
-    return request.param
+        yield request.param
+        return
+    served = []
+    encode = hash_cpu.encode
+    monkeypatch.setattr(hash_cpu, "encode",
+                        lambda *a, **k: (lambda r: (served.append(r is not None), r)[1])(
+                            encode(*a, **k)))
+    yield request.param
+    assert any(served)
+
+
+def _count_calls(monkeypatch, module, name: str) -> list[int]:
+    """Count the calls of ``module.name`` (a compiled kernel called from Python)."""
+    calls: list[int] = []
+    kernel = getattr(module, name)
+    monkeypatch.setattr(module, name, lambda *a: (calls.append(1), kernel(*a))[1])
+    return calls
 
 
 def _random_table(enc: HashEncoding, seed: int = 0) -> None:
@@ -179,7 +196,9 @@ def test_compiled_loops_equal_the_eager_path_values_and_gradient(monkeypatch):
     ref, (g_ref,) = enc(u), torch.autograd.grad((enc(u) * wts).sum(), enc.table)
     assert (out - ref).abs().max().item() <= 2e-7
     assert (g - g_ref).abs().max().item() <= 1e-6 * g_ref.abs().max().item()
-    assert hash_cpu.supported(enc.table, u) and not hash_cpu.supported(enc.table, u.double())
+    assert hash_cpu.supported(enc.table, u, enc.plan)
+    assert not hash_cpu.supported(enc.table, u.double(), enc.plan)
+    assert not hash_cpu.supported(enc.table[:-1], u, enc.plan)         # not the plan's rows
 
 
 @pytest.mark.skipif(not AVAILABLE, reason="no numba")
@@ -196,9 +215,10 @@ def test_compiled_loops_a_nan_coordinate_reads_nan_and_sends_nothing():
 
 
 @pytest.mark.skipif(numba_threads() < 2, reason="numba has one thread here")
-def test_compiled_loops_give_the_same_bits_on_one_and_two_threads():
+def test_compiled_loops_give_the_same_bits_on_one_and_two_threads(monkeypatch):
     """Split between threads (points in the forward, levels in the gradient, which own
     disjoint table rows) the sums run in the same order: the same bits."""
+    split = [_count_calls(monkeypatch, hash_cpu, k) for k in ("_encode_parts", "_scatter_parts")]
     enc = _paper_cpu_encoding()
     u = _edge_points(3 * 4096, seed=8)
     wts = torch.randn(u.shape[0], 16, generator=torch.Generator().manual_seed(9))
@@ -209,3 +229,4 @@ def test_compiled_loops_give_the_same_bits_on_one_and_two_threads():
             out = enc(u)
             runs.append((out.detach(), torch.autograd.grad((out * wts).sum(), enc.table)[0]))
     assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
+    assert [len(c) for c in split] == [1, 1]                        # the two-thread run split

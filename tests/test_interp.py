@@ -10,9 +10,9 @@ import torch
 import baselines.grids as grids
 import baselines.tensorf_cp as tensorf_cp
 from baselines import HexPlaneField, TensoRFCPField
-from baselines.interp import GRAIN, corners, interpolate, supported
+from baselines.interp import corners, interpolate, supported
 from eventrecon.errors import InputError
-from eventrecon.sim.jit import numba_threads, parts
+from eventrecon.sim.jit import GRAIN, numba_threads, parts
 from eventrecon.sim.pipeline import torch_threads
 
 
@@ -230,10 +230,18 @@ def test_a_grown_float64_field_reloads_in_float64():
 
 @pytest.mark.skipif(numba_threads() < 2, reason="numba has one thread here")
 @pytest.mark.parametrize("shape", [(8, 64, 64), (6, 500)])
-def test_split_between_two_threads_same_values_and_the_halves_gradients_summed(shape):
+def test_split_between_two_threads_same_values_and_the_halves_gradients_summed(shape,
+                                                                               monkeypatch):
     """With two torch threads the points run as two ranges on numba's threads: the same
     values to the bit, and the grid's gradient exactly the sum of each half's one-thread
-    gradient (each range scatters into its own copy, added once)."""
+    gradient (each range scatters into its own copy, added once). Outside the
+    ``torch_threads(2)`` block this module's fixture keeps one thread."""
+    import baselines.interp as interp
+
+    split = {k: [] for k in ("_gather_parts", "_scatter_parts")}
+    for name, calls in split.items():
+        kernel = getattr(interp, name)
+        monkeypatch.setattr(interp, name, lambda *a, c=calls, f=kernel: (c.append(1), f(*a))[1])
     n = 4 * GRAIN
     grid, coords = _case(shape, n, 3)
     grid.requires_grad_(True)
@@ -251,3 +259,4 @@ def test_split_between_two_threads_same_values_and_the_halves_gradients_summed(s
         with torch.no_grad():
             assert torch.equal(interpolate(grid, coords, False, "zeros"), one)
     assert torch.equal(two, one) and torch.equal(g_two, halves)
+    assert {k: len(v) for k, v in split.items()} == {"_gather_parts": 2, "_scatter_parts": 1}

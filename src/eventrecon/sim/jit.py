@@ -22,10 +22,14 @@ beside the module; a cache moved elsewhere with ``NUMBA_CACHE_DIR`` is not watch
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import itertools
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 try:
     import numba
@@ -36,7 +40,7 @@ except ImportError:                              # pragma: no cover - numba is a
 prange = range if numba is None else numba.prange
 
 __all__ = ["AVAILABLE", "SOURCES", "drop_stale_cache", "njit", "njit_borrowing",
-           "njit_inline", "njit_parallel", "numba_threads", "parts", "prange"]
+           "njit_inline", "njit_parallel", "numba_threads", "parts", "prange", "GRAIN"]
 
 #: Whether numba could be imported.
 AVAILABLE = numba is not None
@@ -72,14 +76,19 @@ if AVAILABLE:
     drop_stale_cache()
 
 
+#: The options of every compiled function here (module docstring).
+_OPTIONS = {"cache": True, "error_model": "numpy", "nogil": True}
+#: Items per range, at least, when :func:`parts` splits a loop between threads.
+GRAIN = 4096
+
+
 def njit(fn: Callable, inline: bool = False, nrt: bool = True) -> Callable:
     """``fn`` compiled (see the module docstring); ``inline``: at its call sites, for
     small per-element helpers whose call would cost more than their work; ``nrt=False``:
     without reference counting (:func:`njit_borrowing`)."""
     if numba is None:                            # pragma: no cover
         return fn
-    return numba.njit(cache=True, error_model="numpy", nogil=True, _nrt=nrt,
-                      inline="always" if inline else "never")(fn)
+    return numba.njit(**_OPTIONS, _nrt=nrt, inline="always" if inline else "never")(fn)
 
 
 def njit_inline(fn: Callable) -> Callable:
@@ -94,10 +103,10 @@ def njit_borrowing(fn: Callable) -> Callable:
 
 def njit_parallel(fn: Callable) -> Callable:
     """:func:`njit` with ``parallel=True``: its ``prange`` loop runs on numba's threads (a
-    decorator; see the module docstring)."""
+    decorator; the loops it splits, :func:`parts`)."""
     if numba is None:                            # pragma: no cover
         return fn
-    return numba.njit(cache=True, error_model="numpy", nogil=True, parallel=True)(fn)
+    return numba.njit(**_OPTIONS, parallel=True)(fn)
 
 
 def numba_threads() -> int:
@@ -106,10 +115,25 @@ def numba_threads() -> int:
     return 1 if numba is None else int(numba.config.NUMBA_NUM_THREADS)
 
 
-def parts(n: int, grain: int = 4096) -> int:
+@functools.cache
+def _thread_safe_layer() -> bool:
+    """Whether numba's threading layer is OpenMP or TBB (launched once, on a trivial
+    loop, to find out). Its ``workqueue`` fallback aborts the process when two Python
+    threads enter parallel code at once, so then nothing is split."""
+    if numba is None:                            # pragma: no cover
+        return False
+    try:
+        _probe(np.zeros(2))
+        return numba.threading_layer() in ("omp", "tbb")
+    except (ValueError, RuntimeError):           # pragma: no cover - no layer loads
+        return False
+
+
+def parts(n: int, grain: int = GRAIN) -> int:
     """How many ranges to split ``n`` independent items into for an :func:`njit_parallel`
     loop: ``min(torch threads, numba threads, n // grain)``, at least 1 (1: call the
-    serial kernel instead). Sets numba's thread count of the calling thread to it.
+    serial kernel instead; also where numba's threading layer is not thread-safe). When
+    more than 1, sets numba's thread count of the calling thread to it.
 
     >>> parts(10)
     1
@@ -119,6 +143,15 @@ def parts(n: int, grain: int = 4096) -> int:
     import torch
 
     k = max(1, min(torch.get_num_threads(), numba_threads(), n // grain))
+    if k > 1 and not _thread_safe_layer():
+        return 1
     if k > 1:
         numba.set_num_threads(k)
     return k
+
+
+@njit_parallel
+def _probe(a: Any) -> None:
+    """A trivial parallel loop (:func:`_thread_safe_layer`)."""
+    for i in prange(a.shape[0]):
+        a[i] += 1.0
