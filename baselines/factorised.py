@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from baselines.grids import FactorGrids, box_normalize
-from baselines.heads import activate
+from baselines.heads import activate, activate_density
 from baselines.schedules import GridGrowth, GrowthPlan
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
@@ -92,10 +92,19 @@ class FactorisedField(Field):
         out = self.rank_sum(box_normalize(xyz, t, self.box_lo, self.box_hi))
         return activate(out[:, 0], out[:, 1:])
 
-    def rank_sum(self, coords: Tensor) -> Tensor:
-        """``o [N, F]``: the rank components at ``coords [N, 4]`` summed over the rank."""
-        out = self.combine(self.grids(coords))                          # [N, F·R]
-        return out.reshape(-1, FEATURES, self.rank).sum(-1)
+    def density_only(self, xyz: Tensor, t: Tensor) -> Tensor:
+        """``sigma [N]`` from the density's ``R`` channels alone (the first of the
+        ``F·R``; what the occupancy grid asks): :meth:`forward`'s σ, a quarter of the
+        factors' channels read."""
+        out = self.rank_sum(box_normalize(xyz, t, self.box_lo, self.box_hi), features=1)
+        return activate_density(out[:, 0])
+
+    def rank_sum(self, coords: Tensor, features: int = FEATURES) -> Tensor:
+        """``o [N, features]``: the first ``features`` outputs' rank components at
+        ``coords [N, 4]`` summed over the rank (channel ``f·R + r`` is output ``f``'s
+        component ``r``)."""
+        out = self.combine(self.grids(coords, features * self.rank))    # [N, features·R]
+        return out.reshape(-1, features, self.rank).sum(-1)
 
     def callbacks(self) -> list[Any]:
         """Grid growth (upsampling + optimiser rebuild) when the plan has stages."""

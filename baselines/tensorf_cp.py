@@ -24,7 +24,7 @@ from collections.abc import Sequence
 from torch import Tensor
 
 from baselines.cp_fused import cp_rank_sum
-from baselines.factorised import FactorisedField
+from baselines.factorised import FEATURES, FactorisedField
 from baselines.schedules import GrowthPlan
 
 
@@ -64,9 +64,12 @@ class TensoRFCPField(FactorisedField):
         """``v_x · v_y · v_z · v_t`` per channel."""
         return samples[0] * samples[1] * samples[2] * samples[3]
 
-    def rank_sum(self, coords: Tensor) -> Tensor:
+    def rank_sum(self, coords: Tensor, features: int = FEATURES) -> Tensor:
         """On a CPU one compiled pass over the four lines (:mod:`baselines.cp_fused`: the
         same gradients to the bit, the rank sum to rounding); line by line elsewhere."""
-        fused = cp_rank_sum(list(self.grids.factors), coords, self.grids.align_corners,
-                            self.grids.padding, self.rank)
-        return super().rank_sum(coords) if fused is None else fused
+        lines = list(self.grids.factors)
+        if features < FEATURES:                                         # e.g. the density
+            lines = [line[:features * self.rank] for line in lines]
+        fused = cp_rank_sum(lines, coords, self.grids.align_corners, self.grids.padding,
+                            self.rank)
+        return super().rank_sum(coords, features) if fused is None else fused

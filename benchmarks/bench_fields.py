@@ -37,7 +37,7 @@ from hydra import compose, initialize_config_dir
 from torch import Tensor
 
 from baselines import NGPField, hash_encode_reference
-from baselines.factorised import FactorisedField
+from baselines.factorised import FEATURES, FactorisedField
 from baselines.grids import sample_grid_reference
 from eventrecon import build
 from eventrecon.fields.base import Field
@@ -76,11 +76,11 @@ def make_naive(field: Field) -> Field:
         enc.forward = lambda u: hash_encode_reference(enc, u)  # type: ignore[method-assign]
     elif isinstance(field, FactorisedField):
         grids = field.grids
-        grids.forward = lambda c: [  # type: ignore[method-assign]   # [N, C] each
-            sample_grid_reference(f, c[:, list(ax)], ac, grids.padding).t()
+        grids.forward = lambda c, k=None: [  # type: ignore[method-assign]   # [N, C] each
+            sample_grid_reference(f[:k], c[:, list(ax)], ac, grids.padding).t()
             for f, ax, ac in zip(grids.factors, grids.axes, grids.align_corners)]
         # factor by factor, also where the field fuses them (TensoRF-CP's lines on a CPU)
-        field.rank_sum = lambda c: FactorisedField.rank_sum(field, c)  # type: ignore[method-assign]
+        field.rank_sum = lambda c, f=FEATURES: FactorisedField.rank_sum(field, c, f)  # type: ignore[method-assign]
     else:
         raise TypeError(f"no naive version of {type(field).__name__}")
     return field

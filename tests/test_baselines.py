@@ -353,8 +353,7 @@ def test_gradients_reach_every_parameter(kind):
 
 def test_ngp_density_alone_is_the_forward_density_bit_for_bit():
     """What the occupancy grid asks of NGP: its density MLP with the colour MLP removed,
-    equal to the forward pass's density to the bit, and varying over space. (The
-    factorised fields use the base class's ``forward(...)[0]``.)"""
+    equal to the forward pass's density to the bit, and varying over space."""
     torch.manual_seed(2)
     f = _small("ngp")
     xyz, t = _points(3000, 7)
@@ -363,6 +362,30 @@ def test_ngp_density_alone_is_the_forward_density_bit_for_bit():
             p.add_(0.3 * torch.randn_like(p))
         full = f(xyz * 0.5, t)[0]
         f.decoder.colour_net = None
+        alone = f.density_only(xyz * 0.5, t)
+    assert alone.dtype == full.dtype == torch.float32
+    assert torch.equal(alone, full) and float(full.std()) > 1e-3
+
+
+@pytest.mark.parametrize("kind", ["tensorf_cp", "hexplane"])
+@pytest.mark.parametrize("fused", [True, False])
+def test_factorised_density_alone_reads_only_the_density_channels(kind, fused, monkeypatch):
+    """The factorised fields' ``density_only`` samples only the density's ``R`` channels
+    of each factor (the colours' made NaN here cannot reach it) and gives the forward
+    pass's density to the bit, with TensoRF-CP's fused lines and line by line."""
+    import baselines.tensorf_cp as tensorf_cp
+
+    if not fused:
+        monkeypatch.setattr(tensorf_cp, "cp_rank_sum", lambda *a, **k: None)
+    torch.manual_seed(3)
+    f = _small(kind)
+    xyz, t = _points(3000, 8)
+    with torch.no_grad():
+        for p in f.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+        full = f(xyz * 0.5, t)[0]
+        for p in f.grids.factors:              # the colour channels, never read
+            p[f.rank:] = float("nan")
         alone = f.density_only(xyz * 0.5, t)
     assert alone.dtype == full.dtype == torch.float32
     assert torch.equal(alone, full) and float(full.std()) > 1e-3
