@@ -43,17 +43,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+import eventrecon.sim.jit as jit
 from baselines.interp import channel_rows, corners, vertex_coords
 from eventrecon.errors import InputError
-from eventrecon.sim.jit import (
-    AVAILABLE,
-    GRAIN,
-    njit_borrowing,
-    njit_inline,
-    njit_parallel,
-    parts,
-    prange,
-)
+from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline, njit_parallel, prange
 
 __all__ = ["cp_rank_sum", "supported"]
 
@@ -204,7 +197,7 @@ class _CPRankSum(torch.autograd.Function):
         tables = [channel_rows(line).numpy() for line in lines]
         # each range scatters into its own copy of the lines: worth it while the points
         # outnumber the lines' rows
-        p = parts(lower.shape[0], grain=max(GRAIN, sum(t.shape[0] for t in tables)))
+        p = jit.parts(lower.shape[0], grain=max(jit.GRAIN, sum(t.shape[0] for t in tables)))
         sums = [torch.zeros((p, *t.shape), dtype=lines[0].dtype) for t in tables]  # [P, R_a, C]
         samples = np.empty((p, 4, tables[0].shape[1] + _PAD), tables[0].dtype)
         args = (*tables, _sizes(lines), lower.numpy(), weights.numpy(), ctx.rank,
@@ -226,7 +219,7 @@ def _read(lines: Sequence[Tensor], lower: Tensor, weights: Tensor, rank: int) ->
     c = lines[0].shape[0]
     out = lines[0].new_empty(lower.shape[0], c // rank)
     dtype = out.numpy().dtype
-    p = parts(lower.shape[0], GRAIN)
+    p = jit.parts(lower.shape[0])
     args = (*(channel_rows(line).numpy() for line in lines), _sizes(lines), lower.numpy(),
             weights.numpy(), rank, out.numpy())
     if p == 1:
