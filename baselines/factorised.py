@@ -103,8 +103,9 @@ class FactorisedField(Field):
         """``o [N, features]``: the first ``features`` outputs' rank components at
         ``coords [N, 4]`` summed over the rank (channel ``f·R + r`` is output ``f``'s
         component ``r``)."""
-        out = self.combine(self.grids(coords, features * self.rank))    # [N, features·R]
-        return out.reshape(-1, features, self.rank).sum(-1)
+        channels = None if features == FEATURES else features * self.rank   # None: all,
+        out = self.combine(self.grids(coords, channels))     # unsliced (no slice backward)
+        return out.reshape(-1, features, self.rank).sum(-1)                 # [N, features]
 
     def callbacks(self) -> list[Any]:
         """Grid growth (upsampling + optimiser rebuild) when the plan has stages."""
