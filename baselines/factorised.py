@@ -103,9 +103,13 @@ class FactorisedField(Field):
         """``o [N, features]``: the first ``features`` outputs' rank components at
         ``coords [N, 4]`` summed over the rank (channel ``f·R + r`` is output ``f``'s
         component ``r``)."""
-        channels = None if features == FEATURES else features * self.rank   # None: all,
-        out = self.combine(self.grids(coords, channels))     # unsliced (no slice backward)
-        return out.reshape(-1, features, self.rank).sum(-1)                 # [N, features]
+        out = self.combine(self.grids(coords, self.channels(features)))  # [N, features·R]
+        return out.reshape(-1, features, self.rank).sum(-1)
+
+    def channels(self, features: int) -> int | None:
+        """The leading channels of each factor that the first ``features`` outputs read;
+        ``None`` for all (:meth:`~baselines.grids.FactorGrids.leading`)."""
+        return None if features == FEATURES else features * self.rank
 
     def callbacks(self) -> list[Any]:
         """Grid growth (upsampling + optimiser rebuild) when the plan has stages."""

@@ -290,12 +290,16 @@ class FactorGrids(nn.Module):
         """Vertices per grid axis of each factor."""
         return [tuple(f.shape[1:]) for f in self.factors]
 
+    def leading(self, channels: int | None) -> list[Tensor]:
+        """The factors, or the first ``channels`` of each; ``None``: the factors themselves,
+        unsliced (a slice's backward would allocate and copy a factor-sized gradient)."""
+        return list(self.factors) if channels is None else [f[:channels] for f in self.factors]
+
     def forward(self, coords: Tensor, channels: int | None = None) -> list[Tensor]:
-        """Sample every factor: ``coords [N, 4]`` -> list of ``[N, C]``
-        (:func:`sample_points`); with ``channels`` only the first ``channels`` of each."""
-        return [sample_points(f if channels is None else f[:channels], coords[:, list(ax)], ac,
-                              self.padding)
-                for f, ax, ac in zip(self.factors, self.axes, self.align_corners)]
+        """Sample every factor (:meth:`leading`): ``coords [N, 4]`` -> list of ``[N, C]``
+        (:func:`sample_points`)."""
+        return [sample_points(f, coords[:, list(ax)], ac, self.padding)
+                for f, ax, ac in zip(self.leading(channels), self.axes, self.align_corners)]
 
     def upsample(self, shapes: Sequence[Sequence[int]]) -> None:
         """Replace every factor by a new Parameter resampled to ``shapes[j]``."""

@@ -140,34 +140,25 @@ def _scatter_parts(u: Any, res: Any, mult: Any, hashed: Any, offset: Any, mask: 
 
 
 class Plan:
-    """An encoding's per-level constants as numpy arrays, for the compiled loops: ``res``
-    and ``mult`` ``[L, D]`` int64 (``R_{l,k}``; ``m_k``, the dense strides or the primes),
-    ``hashed [L]`` bool, ``offset [L]`` int32 (``o_l``), ``mask`` (``T − 1``) and ``rows``
-    (the table's rows in all, which :func:`supported` checks the table against: the loops
-    do not check their indices).
+    """An encoding's constants for the compiled loops; ``rows`` is the table's rows in
+    all, which :func:`supported` checks the table against (the loops do not check their
+    indices).
 
     Args:
-        axis_resolutions: ``R_{l,k}`` per level and axis.
-        dense: per level, whether it is indexed densely (else hashed).
+        res: ``[L, D]`` int64, ``R_{l,k}``.
+        mult: ``[L, D]`` int64, ``m_k``: the dense strides or the hash primes.
+        hashed: ``[L]`` bool, whether a level is hashed (else indexed densely).
         offsets: each level's first table row (``L + 1`` entries, the last the total).
         table_size: ``T``, a power of two (hashed levels keep ``T − 1``'s bits).
-        primes: the hash's ``m_k`` per axis.
     """
 
-    def __init__(self, axis_resolutions: Sequence[Sequence[int]], dense: Sequence[bool],
-                 offsets: Sequence[int], table_size: int, primes: Sequence[int]) -> None:
-        n_levels = len(axis_resolutions)
-        self.res = np.array(axis_resolutions, dtype=np.int64).reshape(n_levels, -1)
-        n_dims = self.res.shape[1]
-        strides = np.cumprod(np.concatenate([np.ones((n_levels, 1), np.int64),
-                                             self.res[:, :-1] + 1], 1), 1)
-        hashed = ~np.array(dense, dtype=np.bool_)
-        self.mult = np.where(hashed[:, None], np.array(primes[:n_dims], dtype=np.int64),
-                             strides).astype(np.int64)
-        self.hashed = hashed
-        self.offset = np.array(offsets[:n_levels], dtype=np.int32)
+    def __init__(self, res: np.ndarray, mult: np.ndarray, hashed: np.ndarray,
+                 offsets: Sequence[int], table_size: int) -> None:
+        self.res, self.mult = np.ascontiguousarray(res), np.ascontiguousarray(mult)
+        self.hashed = np.ascontiguousarray(hashed, dtype=np.bool_)
+        self.offset = np.asarray(offsets[:-1], dtype=np.int32)
         self.mask = int(table_size - 1)
-        self.rows = int(offsets[n_levels])
+        self.rows = int(offsets[-1])
 
     def scratch(self, p: int) -> tuple[np.ndarray, np.ndarray]:
         """Each range's per-axis terms, int32 and float32, in rows of 128 bytes (``[P,
@@ -186,7 +177,7 @@ class _Encode(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, table: Tensor, u: Tensor, plan: Plan) -> Tensor:  # type: ignore[override]
         ctx.save_for_backward(u)
-        ctx.plan, ctx.rows = plan, table.shape[0]
+        ctx.plan = plan
         return _run_encode(table, u, plan)
 
     @staticmethod
@@ -196,7 +187,7 @@ class _Encode(torch.autograd.Function):
         plan = ctx.plan
         g = grad.contiguous().float()
         n_levels = plan.res.shape[0]
-        g_table = torch.zeros(ctx.rows, g.shape[1] // n_levels, dtype=torch.float32)
+        g_table = torch.zeros(plan.rows, 2, dtype=torch.float32)
         p = min(parts(u.shape[0]), n_levels)          # ranges of levels: no reduction
         v, w = plan.scratch(p)
         if p == 1:

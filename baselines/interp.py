@@ -181,7 +181,7 @@ def _read(grid: Tensor, lower: Tensor, weights: Tensor) -> Tensor:
     sizes = torch.tensor(grid.shape[1:], dtype=torch.long)
     args = (channel_rows(grid).numpy(), sizes.numpy(), lower.numpy(), weights.numpy(),
             out.numpy())
-    p = parts(lower.shape[0], GRAIN)
+    p = parts(lower.shape[0])
     if p == 1:
         _gather(*args)
     else:

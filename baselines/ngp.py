@@ -128,25 +128,26 @@ class HashEncoding(nn.Module):
         gen = torch.Generator().manual_seed(seed)
         table = (torch.rand(self.offsets[-1], n_features, generator=gen) * 2 - 1) * init_scale
         self.table = nn.Parameter(table)
-        self.plan = hash_cpu.Plan(self.axis_resolutions, self.dense, self.offsets,
-                                  self.table_size, PRIMES)
         self.use_compiled = False
         self._compiled: Any = None
-        # per-level constants for the vectorised paths (buffers follow .to(device))
+        # per-level constants [L, D]: cells per axis, and each axis' index multiplier, the
+        # dense strides prod_{j<k} (R_j+1) or the hash primes
+        res = torch.tensor(self.axis_resolutions, dtype=torch.int64).reshape(n_levels, n_dims)
+        strides = torch.cat([torch.ones(n_levels, 1, dtype=torch.int64),
+                             (res[:, :-1] + 1).cumprod(1)], dim=1)
+        dense = torch.tensor(self.dense)
+        mult = torch.where(dense[:, None], strides,
+                           torch.tensor(PRIMES[:n_dims], dtype=torch.int64))
+        self.plan = hash_cpu.Plan(res.numpy(), mult.numpy(), ~dense.numpy(), self.offsets,
+                                  self.table_size)
+        # the same per kind, for the vectorised paths (buffers follow .to(device))
         for kind, sel in (("dense", True), ("hash", False)):
-            lv = [lvl for lvl in range(n_levels) if self.dense[lvl] == sel]
-            res = torch.tensor([self.axis_resolutions[lvl] for lvl in lv],
-                               dtype=torch.int64).reshape(len(lv), n_dims)
-            if sel:  # strides prod_{j<k} (R_j+1) per level and axis
-                ones = torch.ones(len(lv), 1, dtype=torch.int64)
-                mult = torch.cat([ones, (res[:, :-1] + 1).cumprod(1)], dim=1)
-            else:
-                mult = torch.tensor(PRIMES[:n_dims], dtype=torch.int64).expand(len(lv), -1)
-            self.register_buffer(f"{kind}_levels", torch.tensor(lv, dtype=torch.int64), False)
-            self.register_buffer(f"{kind}_res", res, persistent=False)
-            self.register_buffer(f"{kind}_mult", mult.contiguous(), persistent=False)
+            lv = (dense == sel).nonzero().squeeze(1)
+            self.register_buffer(f"{kind}_levels", lv, False)
+            self.register_buffer(f"{kind}_res", res[lv], persistent=False)
+            self.register_buffer(f"{kind}_mult", mult[lv], persistent=False)
             self.register_buffer(f"{kind}_offset", torch.tensor(
-                [self.offsets[i] for i in lv], dtype=torch.int32), persistent=False)
+                [self.offsets[i] for i in lv.tolist()], dtype=torch.int32), persistent=False)
 
     def corners(self, u: Tensor, kind: str) -> tuple[Tensor, Tensor]:
         """Global table rows and weights of the 16 corners at the ``dense`` or ``hash`` levels.

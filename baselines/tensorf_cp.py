@@ -67,9 +67,6 @@ class TensoRFCPField(FactorisedField):
     def rank_sum(self, coords: Tensor, features: int = FEATURES) -> Tensor:
         """On a CPU one compiled pass over the four lines (:mod:`baselines.cp_fused`: the
         same gradients to the bit, the rank sum to rounding); line by line elsewhere."""
-        lines = list(self.grids.factors)
-        if features < FEATURES:                                         # e.g. the density
-            lines = [line[:features * self.rank] for line in lines]
-        fused = cp_rank_sum(lines, coords, self.grids.align_corners, self.grids.padding,
-                            self.rank)
+        fused = cp_rank_sum(self.grids.leading(self.channels(features)), coords,
+                            self.grids.align_corners, self.grids.padding, self.rank)
         return super().rank_sum(coords, features) if fused is None else fused

@@ -77,8 +77,8 @@ def make_naive(field: Field) -> Field:
     elif isinstance(field, FactorisedField):
         grids = field.grids
         grids.forward = lambda c, k=None: [  # type: ignore[method-assign]   # [N, C] each
-            sample_grid_reference(f[:k], c[:, list(ax)], ac, grids.padding).t()
-            for f, ax, ac in zip(grids.factors, grids.axes, grids.align_corners)]
+            sample_grid_reference(f, c[:, list(ax)], ac, grids.padding).t()
+            for f, ax, ac in zip(grids.leading(k), grids.axes, grids.align_corners)]
         # factor by factor, also where the field fuses them (TensoRF-CP's lines on a CPU)
         field.rank_sum = lambda c, f=FEATURES: FactorisedField.rank_sum(field, c, f)  # type: ignore[method-assign]
     else:

@@ -75,6 +75,15 @@ def test_matches_slow_reference(path):
     assert (got - ref).abs().max().item() <= 1e-6
 
 
+def test_a_dense_level_of_exactly_table_size_rows_matches_the_reference(path):
+    """``(R+1)^4 = T``: the level is dense (rows summed, not hashed), on both paths."""
+    enc = HashEncoding(log2_table_size=8, n_levels=3, base_resolution=3, per_level_scale=2.0)
+    assert enc.dense == [True, False, False] and 4**4 == enc.table_size
+    _random_table(enc)
+    u = _edge_points(2000, seed=11)
+    assert (enc(u) - hash_encode_reference(enc, u)).abs().max().item() <= 1e-6
+
+
 def test_gradient_matches_reference(path):
     """The hand-written scatter-add backward equals autograd through the reference."""
     enc = HashEncoding(log2_table_size=12, n_levels=4, base_resolution=3)
