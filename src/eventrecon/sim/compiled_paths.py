@@ -4,8 +4,8 @@ Scalar counterparts, expression for expression, of :mod:`eventrecon.sim.paths` (
 module docstring states the rules), called per pixel from the loops of
 :mod:`eventrecon.sim.compiled_core`: the vertex of the parabola through three samples,
 the smooth turns of a path and whether one may reach its next level, emission of a
-path's crossings and the cubic crossing time, and the vertex refinement of the turns
-that may reach a level (:func:`refine_turns`, the counterpart of
+path's crossings and their times (:mod:`eventrecon.sim.crossing`), and the vertex
+refinement of the turns that may reach a level (:func:`refine_turns`, the counterpart of
 :func:`eventrecon.sim.paths.refine_turns` for the ideal pixel). The per-event helpers are
 inlined at their call sites (a call would cost more than their work).
 """
@@ -18,6 +18,10 @@ from collections.abc import Callable
 import numpy as np
 
 from eventrecon.sim.jit import njit, njit_borrowing, njit_inline
+
+#: :data:`eventrecon.sim.crossing.SECOND_STEP` (numba freezes a module's globals when it
+#: compiles; a test checks the two forms give the same bits).
+SECOND_STEP = 1e-2
 
 __all__ = ["clip", "parabola", "cross_time", "room", "commit_path", "turn", "find_turns",
            "vertex_may_gain", "queue_turns", "gather_turns", "refine_turns"]
@@ -44,49 +48,116 @@ def parabola(xa, ya, xb, yb, xc, yc):
 
 
 @njit_inline
-def _q(s, C2, C3, a, u):
-    """The crossing cubic minus its level at ``s`` (see :func:`cross_time`)."""
-    return s + (s * (s - 1.0)) * (C2 + C3 * (s - a)) - u
+def _poly(s, C0, C1, C2, C3, Z0, Z1, Z2):
+    """``(ℓ(s), ℓ'(s))`` of the crossing polynomial's Newton form (scalar form of
+    :func:`eventrecon.sim.crossing.poly`)."""
+    v, dv = C3, 0.0
+    dv = v + (s - Z2) * dv
+    v = C2 + (s - Z2) * v
+    dv = v + (s - Z1) * dv
+    v = C1 + (s - Z1) * v
+    dv = v + (s - Z0) * dv
+    v = C0 + (s - Z0) * v
+    ss = s * (s - 1.0)
+    return s + ss * v, 1.0 + (2.0 * s - 1.0) * v + ss * dv
+
+
+@njit
+def _scan_root(u, C0, C1, C2, C3, Z0, Z1, Z2):
+    """The first root of ``ℓ(s) = u`` on ``[0, 1]``: the first sign change on a grid of
+    33 points, then Newton steps kept inside that bracket (the rare path of
+    :func:`cross_time`, kept out of line)."""
+    k = 0
+    for j in range(33):
+        if _poly(j / 32, C0, C1, C2, C3, Z0, Z1, Z2)[0] - u >= 0:
+            k = j
+            break
+    k = max(k, 1)
+    lo, hi = (k - 1) / 32, k / 32
+    x = 0.5 * (lo + hi)
+    for _ in range(6):                           # crossing.BRACKETED_STEPS
+        qx, dx = _poly(x, C0, C1, C2, C3, Z0, Z1, Z2)
+        qx = qx - u
+        if qx >= 0:
+            hi = x
+        else:
+            lo = x
+        xn = x - qx / dx
+        x = xn if (xn > lo) and (xn < hi) else 0.5 * (lo + hi)
+    return x if math.isfinite(x) else clip(u, 0.0, 1.0)
 
 
 @njit_inline
 def cross_time(pt, pL, c, length, level):
     """Time where the path ``pt, pL`` (``length`` points) meets ``level`` on the leg
-    ``c → c+1``: the cubic through points ``c−1 … c+2`` (scalar form of
-    :func:`eventrecon.sim.paths.cross_times`; a point beyond the path repeats the last)."""
-    d = c + 2 if c + 2 < length else length - 1
-    x0, x1, x2, x3 = pt[c - 1], pt[c], pt[c + 1], pt[d]
-    y0, y1, y2, y3 = pL[c - 1], pL[c], pL[c + 1], pL[d]
-    h, D = x2 - x1, y2 - y1
-    u = (level - y1) / D
-    a, b = (x0 - x1) / h, (x3 - x1) / h
-    left, right = a < 0, b > 1
-    c2l = (1.0 + (y1 - y0) / (a * D)) / (1.0 - a)
-    c2r = ((y3 - y2) / ((b - 1.0) * D) - 1.0) / b
-    C3 = (c2r - c2l) / (b - a) if (left and right) else 0.0
-    C2 = c2l if left else (c2r if right else 0.0)
-    if not left:
-        a = 0.0
-    s1 = u * (u - 1.0)
-    dq = 1.0 + C2 * (2 * u - 1.0) + C3 * ((2 * u - 1.0) * (u - a) + s1)
-    s = u - _q(u, C2, C3, a, u) / dq
-    if not ((s >= 0.0) and (s <= 1.0) and (dq > 0) and (abs(s - u) < 0.1)):
-        k = 0                                    # not monotone: first sign change on a
-        for j in range(33):                      # grid, then regula falsi
-            if _q(j / 32, C2, C3, a, u) >= 0:
-                k = j
-                break
-        k = max(k, 1)
-        lo, hi = (k - 1) / 32, k / 32
-        qlo, qhi = _q(lo, C2, C3, a, u), _q(hi, C2, C3, a, u)
-        for _ in range(4):
-            mid = clip(lo - qlo * (hi - lo) / (qhi - qlo), lo, hi)
-            qm = _q(mid, C2, C3, a, u)
-            if qm >= 0:
-                hi, qhi = mid, qm
-            else:
-                lo, qlo = mid, qm
-        s = hi if math.isfinite(hi) else clip(u, 0.0, 1.0)
+    ``c → c+1``: the polynomial through points ``c−2 … c+3`` (those present), Newton
+    from the root of its quadratic part (scalar form of :func:`eventrecon.sim.crossing.cross_times`;
+    the module docstring there states the rule)."""
+    last = length - 1
+    x1, y1 = pt[c], pL[c]
+    h, D = pt[c + 1] - x1, pL[c + 1] - y1
+    ih, iD = 1.0 / h, 1.0 / D
+    u = (level - y1) * iD
+    z0 = z1 = z2 = z3 = y0 = y1_ = y2 = y3 = 0.0
+    cnt = 0
+    zl = zr = 0.0                                # the outer node taken on each side
+    okl = okr = False
+    for k in range(4):                           # nodes c−1, c+2, c−2, c+3
+        j = c - 1 if k == 0 else (c + 2 if k == 1 else (c - 2 if k == 2 else c + 3))
+        if j < 0 or j > last or (k >= 2 and not (okl if k == 2 else okr)):
+            continue
+        z, y = (pt[j] - x1) * ih, (pL[j] - y1) * iD
+        if k % 2 == 0:
+            if not z < (0.0 if k == 0 else zl):
+                continue
+            zl, okl = z, True
+        else:
+            if not z > (1.0 if k == 1 else zr):
+                continue
+            zr, okr = z, True
+        if cnt == 0:
+            z0, y0 = z, y
+        elif cnt == 1:
+            z1, y1_ = z, y
+        elif cnt == 2:
+            z2, y2 = z, y
+        else:
+            z3, y3 = z, y
+        cnt += 1
+    C0 = C1 = C2 = C3 = Z0 = Z1 = Z2 = 0.0       # the divided differences
+    if cnt >= 1:
+        g0 = (y0 - z0) / (z0 * (z0 - 1.0))
+        C0, Z0 = g0, z0
+    if cnt >= 2:
+        g1 = (y1_ - z1) / (z1 * (z1 - 1.0))
+        C1, Z1 = (g1 - g0) / (z1 - z0), z1
+    if cnt >= 3:
+        g2 = (y2 - z2) / (z2 * (z2 - 1.0))
+        d12 = (g2 - g1) / (z2 - z1)
+        C2, Z2 = (d12 - C1) / (z2 - z0), z2
+    if cnt == 4:
+        g3 = (y3 - z3) / (z3 * (z3 - 1.0))
+        C3 = (((g3 - g2) / (z3 - z2) - d12) / (z3 - z1) - C2) / (z3 - z0)
+    b = 1.0 - C0                                 # the quadratic part's root in [0, 1]
+    s0 = 2.0 * u / (b + math.sqrt(b * b + 4.0 * C0 * u))
+    q, d = _poly(s0, C0, C1, C2, C3, Z0, Z1, Z2)
+    s = s0 - (q - u) / d
+    ok = d > 0
+    if abs(s - s0) > SECOND_STEP:                # a second step where the first was long
+        q, d = _poly(s, C0, C1, C2, C3, Z0, Z1, Z2)
+        s = s - (q - u) / d
+        ok = ok and d > 0
+    ok = ok and (s >= 0.0) and (s <= 1.0)
+    if ok and not abs(s - s0) < 0.1:              # two more steps; below u before it
+        q2, d2 = _poly(s, C0, C1, C2, C3, Z0, Z1, Z2)
+        s3 = s - (q2 - u) / d2
+        q3, d3 = _poly(s3, C0, C1, C2, C3, Z0, Z1, Z2)
+        s = s3 - (q3 - u) / d3
+        ok = (s >= 0.0) and (s <= 1.0) and (d2 > 0) and (d3 > 0)
+        for a in (0.25, 0.5, 0.75):              # crossing.QUARTERS
+            ok = ok and _poly(a * s, C0, C1, C2, C3, Z0, Z1, Z2)[0] < u
+    if not ok:
+        s = _scan_root(u, C0, C1, C2, C3, Z0, Z1, Z2)
     return x1 + s * h
 
 

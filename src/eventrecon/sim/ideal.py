@@ -5,8 +5,8 @@ an optional low-pass filter) from ``t = 0`` to ``1`` with its own step size. The
 reference level starts at ``r = L_g(0)``; the samples, joined by straight legs, form the
 pixel's *path*, and while a leg reaches ``L ≥ r + θ_on`` an ON event is emitted and
 ``r ← r + θ_on`` (OFF alike with ``θ_off``) -- at a float64 time interpolated on the
-pixel's own samples (:mod:`~eventrecon.sim.paths`: a cubic through the leg and its
-neighbours, one Newton step from the straight-leg time).
+pixel's own samples (:mod:`~eventrecon.sim.crossing`: the polynomial through the leg and
+up to two neighbours on each side, a Newton step from its quadratic part's root).
 
 **Sampling is adaptive.** A sample is kept only if the raw and the filtered signal change
 by at most ``β = max_log_step·θ`` and the slope changes by at most ``max_curvature·β``

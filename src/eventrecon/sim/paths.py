@@ -14,11 +14,11 @@ to the paths of many pixels at once (laid out ``[sample, pixel]``) and
    parabolic interpolation, two rounds). If the best point reaches the level, it joins
    the path between its neighbours and the pixel's block is emitted again: a level the
    true extremum passes by more than about ``turn_tol·θ`` is never lost;
-3. times each crossing: the root on ``[t_a, t_b]`` of ``p(t) = level`` for the cubic
-   ``p`` through the leg's samples and their outer neighbours (a quadratic or the line
-   where one is missing), one Newton step from the straight-leg estimate
-   ``t_a + (level − L_a)/(L_b − L_a)·(t_b − t_a)``; where the cubic is not monotone
-   there, its first root on the leg, by bisection.
+3. times each crossing: the root on ``[t_a, t_b]`` of ``p(t) = level`` for the
+   polynomial ``p`` through the leg's samples and up to two outer neighbours on each side
+   (a quintic; lower order where the path has fewer), a Newton step from the root of
+   its quadratic part; where ``p`` is not monotone there, its first root on the leg
+   (:mod:`~eventrecon.sim.crossing`).
 
 Turns are only refined where they are smooth: a second difference beyond twice the
 sampling bound marks a jump, whose crossings the path already stamps at the jump. With
@@ -33,6 +33,7 @@ from collections.abc import Callable
 import numpy as np
 
 from eventrecon.sim.core_settings import CoreSettings, SignalSetup
+from eventrecon.sim.crossing import cross_times
 
 __all__ = ["PathState", "commit", "cross_times", "refine_turns"]
 
@@ -155,56 +156,6 @@ def refine_turns(signal: Callable, g: np.ndarray, sig: np.ndarray, tri: list,
     return tri[0][1] != x0
 
 
-def cross_times(Pt: np.ndarray, PL: np.ndarray, c: np.ndarray, i: np.ndarray,
-                level: np.ndarray) -> np.ndarray:
-    """Times where paths ``Pt, PL`` (``[C, n]``) meet ``level`` on the legs ``c → c+1``
-    of columns ``i``: the cubic through points ``c−1 … c+2`` (see the module docstring).
-
-    >>> t = np.array([[0.], [1.], [2.], [3.]])     # L = t², level 2.25 at t = 1.5
-    >>> x = cross_times(t, t ** 2, np.array([1]), np.array([0]), np.array([2.25]))
-    >>> round(float(x[0]), 3)                       # the straight leg gives 1.417
-    1.502
-    """
-    n = Pt.shape[1]
-    f = c * n + i
-    Tf, Lf = Pt.ravel(), PL.ravel()
-    x0, x1, x2, x3 = Tf[f - n], Tf[f], Tf[f + n], Tf[f + 2 * n]
-    y0, y1, y2, y3 = Lf[f - n], Lf[f], Lf[f + n], Lf[f + 2 * n]
-    h, D = x2 - x1, y2 - y1
-    u = (level - y1) / D
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        # q(s) = s + C2·s(s−1) + C3·s(s−1)(s−a) − u on s = (t − x1)/h: the cubic through
-        # the nodes a < 0, 0, 1, b > 1 over D (a quadratic or the line where one is missing)
-        a, b = (x0 - x1) / h, (x3 - x1) / h
-        left, right = a < 0, b > 1
-        c2l = (1.0 + (y1 - y0) / (a * D)) / (1.0 - a)
-        c2r = ((y3 - y2) / ((b - 1.0) * D) - 1.0) / b
-        C3 = np.where(left & right, (c2r - c2l) / (b - a), 0.0)
-        C2, a = np.where(left, c2l, np.where(right, c2r, 0.0)), np.where(left, a, 0.0)
-
-        def q(s):
-            return s + (s * (s - 1.0)) * (C2 + C3 * (s - a)) - u
-        s1 = u * (u - 1.0)                       # one Newton step from the straight leg
-        dq = 1.0 + C2 * (2 * u - 1.0) + C3 * ((2 * u - 1.0) * (u - a) + s1)
-        s = u - q(u) / dq
-        bad = np.flatnonzero(~((s >= 0.0) & (s <= 1.0) & (dq > 0) & (np.abs(s - u) < 0.1)))
-        if bad.size:                             # not monotone here: its first root, from
-            C2, C3, a, u = C2[bad], C3[bad], a[bad], u[bad]   # the first sign change on a
-            grid = np.linspace(0.0, 1.0, 33)[:, None]         # grid, regula falsi
-            qg = q(grid)
-            k = np.maximum(np.argmax(qg >= 0, axis=0), 1)
-            lo, hi = (k - 1) / 32, k / 32
-            qlo, qhi = qg[k - 1, np.arange(k.size)], qg[k, np.arange(k.size)]
-            for _ in range(4):
-                mid = np.clip(lo - qlo * (hi - lo) / (qhi - qlo), lo, hi)
-                qm = q(mid)
-                up = qm >= 0
-                lo, qlo = np.where(up, lo, mid), np.where(up, qlo, qm)
-                hi, qhi = np.where(up, mid, hi), np.where(up, qm, qhi)
-            s[bad] = np.where(np.isfinite(hi), hi, np.clip(u, 0.0, 1.0))
-    return x1 + s * h
-
-
 def _emit(st: PathState, ids: np.ndarray, hot: np.ndarray, PL: np.ndarray, stop: np.ndarray,
           redraw: Callable | None, snap: bool) -> tuple:
     """Crossings of the legs ``c → c+1``, ``1 ≤ c < stop``, of the paths ``PL`` of the
@@ -270,7 +221,7 @@ def _finish(st: PathState, ids: np.ndarray, P: list, length: np.ndarray, events:
     path's last three points as the state."""
     if events:
         ec, ei, level, up = (np.concatenate([x[j] for x in events]) for j in range(4))
-        t = cross_times(P[0], P[1], ec, ei, level)
+        t = cross_times(P[0], P[1], ec, ei, level, length)
         out.append((st.pix[ids[ei]], t, np.where(up, 1, -1).astype(np.int8)))
     n = ids.size
     last = (length - 1) * n + np.arange(n)

@@ -44,7 +44,9 @@ log = logging.getLogger(__name__)
 #: ``background_exposures`` exposures (a single noisy frame before). 5: the intrinsics
 #: files put pixel centres at ``i + 0.5``, as the authors' code reads them
 #: (:data:`eventrecon.render.cameras.FILE_PIXEL_CENTRE`); the simulated pixels are unchanged.
-SIM_VERSION: int = 5
+#: 6: event times on the quintic through the leg and two neighbours a side
+#: (:mod:`eventrecon.sim.crossing`; the cubic through one a side before).
+SIM_VERSION: int = 6
 
 
 def _meta(spec: SceneSpec, stats: dict) -> dict:
