@@ -128,3 +128,12 @@ def test_the_compiled_crossing_time_equals_the_numpy_one_bit_for_bit(seed):
     Tc, Lc = np.ascontiguousarray(Pt.T), np.ascontiguousarray(PL.T)
     ts = np.array([cross_time(Tc[k], Lc[k], c[k], length[k], level[k]) for k in i])
     np.testing.assert_array_equal(ts, t)
+    # the rare paths are among them: roots far from the quadratic start (two more steps
+    # or the scan) and legs whose polynomial is not monotone (the scan)
+    x1, h, y1, D, C, Z = newton_form(Pt, PL, c, i, length)
+    with np.errstate(all="ignore"):
+        u, b = (level - y1) / D, 1.0 - C[0]
+        s0 = 2.0 * u / (b + np.sqrt(b * b + 4.0 * C[0] * u))
+        slope = poly(np.linspace(0.0, 1.0, 257)[:, None], C, Z)[1]
+    assert np.sum(np.abs((t - x1) / h - s0) >= 0.1) > 50
+    assert np.sum(np.any(slope <= 0, axis=0)) > 50

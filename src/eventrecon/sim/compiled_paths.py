@@ -17,11 +17,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from eventrecon.sim.crossing import BRACKETED_STEPS, CONVERGED, QUARTERS, SECOND_STEP
 from eventrecon.sim.jit import njit, njit_borrowing, njit_inline
-
-#: :data:`eventrecon.sim.crossing.SECOND_STEP` (numba freezes a module's globals when it
-#: compiles; a test checks the two forms give the same bits).
-SECOND_STEP = 1e-2
 
 __all__ = ["clip", "parabola", "cross_time", "room", "commit_path", "turn", "find_turns",
            "vertex_may_gain", "queue_turns", "gather_turns", "refine_turns"]
@@ -75,7 +72,7 @@ def _scan_root(u, C0, C1, C2, C3, Z0, Z1, Z2):
     k = max(k, 1)
     lo, hi = (k - 1) / 32, k / 32
     x = 0.5 * (lo + hi)
-    for _ in range(6):                           # crossing.BRACKETED_STEPS
+    for _ in range(BRACKETED_STEPS):
         qx, dx = _poly(x, C0, C1, C2, C3, Z0, Z1, Z2)
         qx = qx - u
         if qx >= 0:
@@ -84,7 +81,9 @@ def _scan_root(u, C0, C1, C2, C3, Z0, Z1, Z2):
             lo = x
         xn = x - qx / dx
         x = xn if (xn > lo) and (xn < hi) else 0.5 * (lo + hi)
-    return x if math.isfinite(x) else clip(u, 0.0, 1.0)
+    finite = (math.isfinite(C0) and math.isfinite(C1) and math.isfinite(C2)
+              and math.isfinite(C3))
+    return x if finite else clip(u, 0.0, 1.0)
 
 
 @njit_inline
@@ -125,6 +124,7 @@ def cross_time(pt, pL, c, length, level):
             z3, y3 = z, y
         cnt += 1
     C0 = C1 = C2 = C3 = Z0 = Z1 = Z2 = 0.0       # the divided differences
+    g0 = g1 = g2 = d12 = 0.0
     if cnt >= 1:
         g0 = (y0 - z0) / (z0 * (z0 - 1.0))
         C0, Z0 = g0, z0
@@ -139,7 +139,8 @@ def cross_time(pt, pL, c, length, level):
         g3 = (y3 - z3) / (z3 * (z3 - 1.0))
         C3 = (((g3 - g2) / (z3 - z2) - d12) / (z3 - z1) - C2) / (z3 - z0)
     b = 1.0 - C0                                 # the quadratic part's root in [0, 1]
-    s0 = 2.0 * u / (b + math.sqrt(b * b + 4.0 * C0 * u))
+    r = math.sqrt(b * b + 4.0 * C0 * u)
+    s0 = 2.0 * u / (b + r) if b >= 0 else (r - b) / (2.0 * C0)
     q, d = _poly(s0, C0, C1, C2, C3, Z0, Z1, Z2)
     s = s0 - (q - u) / d
     ok = d > 0
@@ -153,8 +154,9 @@ def cross_time(pt, pL, c, length, level):
         s3 = s - (q2 - u) / d2
         q3, d3 = _poly(s3, C0, C1, C2, C3, Z0, Z1, Z2)
         s = s3 - (q3 - u) / d3
-        ok = (s >= 0.0) and (s <= 1.0) and (d2 > 0) and (d3 > 0)
-        for a in (0.25, 0.5, 0.75):              # crossing.QUARTERS
+        ok = ((s >= 0.0) and (s <= 1.0) and (d2 > 0) and (d3 > 0)
+              and abs(s - s3) < CONVERGED)
+        for a in QUARTERS:
             ok = ok and _poly(a * s, C0, C1, C2, C3, Z0, Z1, Z2)[0] < u
     if not ok:
         s = _scan_root(u, C0, C1, C2, C3, Z0, Z1, Z2)

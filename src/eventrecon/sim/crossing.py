@@ -20,12 +20,21 @@ The root of ``ℓ(s) = u``, ``u = (level − L_c)/(L_{c+1} − L_c)``, starts fr
 outer node) and takes a Newton step, and a second where the first moved it by more than
 ``1e-2`` (17 % of the crossings on the benchmark's grating); kept where it stays in
 ``[0, 1]`` on positive slopes within 0.1 of the start. Where it lands farther (a strongly
-curved leg), two more steps follow, kept where the slopes stay positive and the
-polynomial lies below ``u`` at a quarter, half and three quarters of the root (it is
-then the leg's first root but for a wiggle between those points). Elsewhere (the
-polynomial may not be monotone on the leg) the first root on the leg is taken: the first
-sign change on a grid of 33 points, then six Newton steps kept inside that bracket (a
-bisection where a step would leave it).
+curved leg), two more steps follow, kept where the slopes stay positive, the last step
+moved it by less than ``1e-3`` and the polynomial lies below ``u`` at a quarter, half and
+three quarters of the root (it is then the leg's first root but for a wiggle between
+those points). Elsewhere (the polynomial may not be monotone on the leg) the first root
+on the leg is taken: the first sign change on a grid of 33 points, then six Newton steps
+kept inside that bracket (a bisection where a step would leave it); a polynomial with a
+non-finite coefficient gives the straight-leg time.
+
+**Order at a block's edges.** The core keeps three points of a pixel's path between
+iterations and holds back its last leg, so the first leg it emits in an iteration has one
+neighbour on its left and the last leg one on its right: those crossings are timed on a
+quartic (a cubic where a block is one sample long). On the benchmark's grating at θ = 0.5
+that is 29 % of the crossings, with a median error of 0.49 µs against 0.11 µs on the
+quintic's legs. Keeping five points and holding back two legs would give every interior
+leg the quintic.
 
 The interpolation error of the time falls as ``h⁶`` (the cubic through ``c−1 … c+2``
 that sessions before 58 used: ``h⁴``): on the benchmark's sliding grating the median
@@ -50,6 +59,8 @@ SECOND_STEP = 1e-2
 #: A root more than 0.1 from the quadratic part's is the leg's first when the
 #: polynomial is below the level at these fractions of it.
 QUARTERS = (0.25, 0.5, 0.75)
+#: ... and when the last of those steps moved it by less than this.
+CONVERGED = 1e-3
 #: Newton steps inside the first bracket (a bisection where one would leave it).
 BRACKETED_STEPS = 6
 
@@ -113,7 +124,8 @@ def first_root(u: np.ndarray, C: np.ndarray, Z: np.ndarray) -> np.ndarray:
     docstring): Newton from the root of the quadratic part, or the first root on the leg."""
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         b = 1.0 - C[0]                           # s + C_0·s(s−1) = u, its root in [0, 1]
-        s0 = 2.0 * u / (b + np.sqrt(b * b + 4.0 * C[0] * u))
+        r = np.sqrt(b * b + 4.0 * C[0] * u)      # (the form without cancellation)
+        s0 = np.where(b >= 0, 2.0 * u / (b + r), (r - b) / (2.0 * C[0]))
         q, d = poly(s0, C, Z)
         s = s0 - (q - u) / d
         ok = d > 0
@@ -130,7 +142,8 @@ def first_root(u: np.ndarray, C: np.ndarray, Z: np.ndarray) -> np.ndarray:
             s3 = s[far] - (q2 - uf) / d2
             q3, d3 = poly(s3, Cf, Zf)
             s4 = s3 - (q3 - uf) / d3
-            good = (s4 >= 0.0) & (s4 <= 1.0) & (d2 > 0) & (d3 > 0)
+            good = ((s4 >= 0.0) & (s4 <= 1.0) & (d2 > 0) & (d3 > 0)
+                    & (np.abs(s4 - s3) < CONVERGED))
             for a in QUARTERS:
                 good &= poly(a * s4, Cf, Zf)[0] < uf
             s[far], ok[far] = s4, good
@@ -147,7 +160,7 @@ def first_root(u: np.ndarray, C: np.ndarray, Z: np.ndarray) -> np.ndarray:
                 lo, hi = np.where(qx >= 0, lo, x), np.where(qx >= 0, x, hi)
                 xn = x - qx / dx
                 x = np.where((xn > lo) & (xn < hi), xn, 0.5 * (lo + hi))
-            s[bad] = np.where(np.isfinite(x), x, np.clip(ub, 0.0, 1.0))
+            s[bad] = np.where(np.isfinite(Cb).all(0), x, np.clip(ub, 0.0, 1.0))
     return s
 
 

@@ -44,8 +44,9 @@ __all__ = ["AVAILABLE", "SOURCES", "drop_stale_cache", "njit", "njit_borrowing",
 
 #: Whether numba could be imported.
 AVAILABLE = numba is not None
-#: The modules of this package whose compiled functions call (inline) one another.
-SOURCES = ("jit.py", "compiled_paths.py", "compiled_core.py", "merge.py")
+#: The modules of this package whose compiled functions call (inline) one another, and
+#: ``crossing.py``, whose constants the compiled crossing time reads.
+SOURCES = ("jit.py", "compiled_paths.py", "compiled_core.py", "merge.py", "crossing.py")
 
 
 def drop_stale_cache(package: Path = Path(__file__).parent) -> bool:

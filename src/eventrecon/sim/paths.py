@@ -234,7 +234,7 @@ def commit(signal: Callable, st: PathState, sel, T: np.ndarray, Lr: np.ndarray,
            Lf: np.ndarray, D: np.ndarray, n_acc: np.ndarray, setup: SignalSetup,
            s: CoreSettings, stats: dict, out: list, rec: list | None) -> None:
     """Append the first ``n_acc`` samples of the blocks ``T, Lr, Lf`` (``[M, N]``, steps
-    ``D`` of ``Lf``; rows beyond are later samples, used only as interpolation nodes) to
+    ``D`` of ``Lf``; rows beyond are later samples, not part of the paths) to
     the paths of the pixels ``sel``, emit and refine (module docstring), append the
     events ``(g, t, p)`` to ``out`` and keep each path's last three points."""
     ids = np.arange(st.pix.size)[sel]
