@@ -135,5 +135,5 @@ def test_the_compiled_crossing_time_equals_the_numpy_one_bit_for_bit(seed):
         u, b = (level - y1) / D, 1.0 - C[0]
         s0 = 2.0 * u / (b + np.sqrt(b * b + 4.0 * C[0] * u))
         slope = poly(np.linspace(0.0, 1.0, 257)[:, None], C, Z)[1]
-    assert np.sum(np.abs((t - x1) / h - s0) >= 0.1) > 50
+        assert np.sum(np.abs((t - x1) / h - s0) >= 0.1) > 50
     assert np.sum(np.any(slope <= 0, axis=0)) > 50

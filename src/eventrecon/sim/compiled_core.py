@@ -11,9 +11,9 @@ the signal stays a vectorised numpy call. One iteration is
 2. ``signal(g, t)`` on all of them, in cache-sized blocks (:data:`SIGNAL_BATCH`);
 3. :func:`_step` -- per pixel: the accepted prefix (``|ΔL| ≤ β`` and
    ``|Δ²L| ≤ max_curvature·β``), the next step and block length, then the path
-   ``s_{−2}, s_{−1}, s_0, new samples`` and its smooth turns. A pixel with no turn that
-   may reach a level emits its crossings at once
-   (:func:`~eventrecon.sim.compiled_paths.commit_path`); the others wait;
+   ``s_{−4} … s_0, new samples`` and its smooth turns. A pixel with no turn that may
+   reach a level emits its crossings at once (``compiled_paths.commit_path``); the
+   others wait;
 4. for the waiting pixels, the vertex refinement of
    :func:`~eventrecon.sim.compiled_paths.refine_turns` (the rule of
    :func:`eventrecon.sim.paths.refine_turns`, compiled), then :func:`_commit_turned`
@@ -21,18 +21,17 @@ the signal stays a vectorised numpy call. One iteration is
    crossing, from the original path otherwise.
 
 Every rule and every floating-point expression is the numpy core's
-(:mod:`eventrecon.sim.ideal`, :mod:`eventrecon.sim.paths`), so both give the same
-events bit for bit; ``tests/test_sim_turns.py`` checks that. The compiled engine covers
-the ideal pixel: no low-pass filter, no re-drawn thresholds, no ``busy`` map and no
-sample recording. ``run_core`` falls back to numpy for the rest -- which includes every
-scene the simulator renders (:func:`~eventrecon.sim.event_sim.simulate_events` always
-passes a ``busy`` map). That is deliberate: there the renderer costs ~20× the core's
-bookkeeping, and a rendered signal evaluated in other batches may differ in the last
-bit (vectorised and scalar ``exp``/``log`` paths), which would change published datasets
-without a ``SIM_VERSION`` bump. The compiled engine serves analytic signals: the
-benchmarks, and users calling :func:`~eventrecon.sim.ideal.run_core` on their own.
-
-numba compiles the loops on first use (a few seconds) and caches them next to this file.
+(:mod:`eventrecon.sim.ideal`, :mod:`eventrecon.sim.paths`), so both give the same events bit
+for bit (``tests/test_sim_turns.py``). The compiled engine covers the ideal pixel: no
+low-pass filter, no re-drawn thresholds, no ``busy`` map and no sample recording.
+``run_core`` falls back to numpy for the rest -- which includes every scene the simulator
+renders (:func:`~eventrecon.sim.event_sim.simulate_events` always passes a ``busy`` map).
+That is deliberate: there the renderer costs ~20× the core's bookkeeping, and a rendered
+signal evaluated in other batches may differ in the last bit (vectorised and scalar
+``exp``/``log`` paths), which would change published datasets without a ``SIM_VERSION``
+bump. The compiled engine serves analytic signals: the benchmarks, and users calling
+:func:`~eventrecon.sim.ideal.run_core` on their own. numba compiles the loops on first use
+(a few seconds) and caches them next to this file.
 """
 
 from __future__ import annotations
@@ -52,6 +51,7 @@ from eventrecon.sim.compiled_paths import (
     room,
 )
 from eventrecon.sim.core_settings import STEP_TARGET
+from eventrecon.sim.crossing import FIRST_LEG, KEEP
 from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline
 
 __all__ = ["AVAILABLE", "run_compiled"]
@@ -104,9 +104,8 @@ def _plan(pix, t_last, h, grow, m, M, max_step, G, T, start, n_valid, odd):
 class _PlanBuffers:
     """The arrays :func:`_plan` fills and the signal's values, allocated once per run for
     ``P`` pixels and blocks of ``M`` and reused by every iteration (views of their first
-    ``N`` or ``Σ n`` elements). Allocated afresh, one iteration's several MB went back to
-    the kernel and were faulted in again: ~37 000 minor faults in a fresh process's first
-    run on the 346×260 grating, 6 000–14 000 in later ones; now ~2 000."""
+    ``N`` or ``Σ n`` elements): allocated afresh, one iteration's several MB were faulted
+    in again (~37 000 minor faults in a fresh process's 346×260 grating; now ~2 000)."""
 
     def __init__(self, P: int, M: int):
         self.M, self.G, self.T = M, np.empty(P * M, np.int64), np.empty(P * M)
@@ -133,7 +132,7 @@ def _accept(i, T, s0, nv, odd, D, R, M, bound, min_step, max_step, max_curvature
     proportion; a jump (a change above 4β) is bisected one sample per iteration.
 
     Returns ``(n_acc, samples forced over the bounds, slope of the last kept step)``."""
-    t0, h0 = st_t[i, 2], h[i]
+    t0, h0 = st_t[i, KEEP - 1], h[i]
     Rmax = 0.0
     n_acc, n_rej = nv, 0
     for k in range(nv):
@@ -197,10 +196,10 @@ def _step(i0, T, start, n_valid, odd, L, pix, st_t, st_L, h, m, brk, grow, slope
     docstring, step 3), their events into ``bg, bt, bp`` from ``n`` on.
 
     A pixel with smooth turns of which one may reach a level is not committed: its path
-    goes to ``Wt, WL`` (``[N, M + 3]``; ``wlen``, ``wdone``) and its turns to ``tr_*``
+    goes to ``Wt, WL`` (``[N, M + KEEP]``; ``wlen``, ``wdone``) and its turns to ``tr_*``
     from ``n_turns`` on. Stops before a pixel whose events might not fit. ``R, D``
-    (``[M]``), ``pt, pL`` (``[M + 3]``), ``ct [M + 2]`` int64 and ``cv [M + 2, 3]`` are
-    scratch space (:func:`_scratch`).
+    (``[M]``), ``pt, pL`` (``[M + KEEP]``), ``ct [M + KEEP]`` int64 and
+    ``cv [M + KEEP, 3]`` are scratch space (:func:`_scratch`).
 
     Returns ``(next pixel, n, n_turns, n_forced)``; all done when the first is ``N``."""
     N = h.size
@@ -209,14 +208,16 @@ def _step(i0, T, start, n_valid, odd, L, pix, st_t, st_L, h, m, brk, grow, slope
     cbound = max_curvature * max_log_step * threshold
     n_forced = 0
     for i in range(i0, N):
-        s0, nv, prev = start[i], n_valid[i], st_L[i, 2]
+        s0, nv, prev = start[i], n_valid[i], st_L[i, KEEP - 1]
         if nv == 0:                              # reached t = 1 (not yet dropped)
             continue
-        var = abs(prev - st_L[i, 1])             # bounds the events of the path
+        var = 0.0                                # bounds the events of the path
+        for k in range(FIRST_LEG, KEEP - 1):     # its legs held back
+            var += abs(st_L[i, k + 1] - st_L[i, k])
         for k in range(nv):
             D[k] = L[s0 + k] - (prev if k == 0 else L[s0 + k - 1])
             var += abs(D[k])
-        if n + var / min(on[i], off[i]) + nv + 3 > bg.size:   # floats: no overflow
+        if n + var / min(on[i], off[i]) + nv + KEEP > bg.size:   # floats: no overflow
             return i, n, n_turns, n_forced      # the caller makes room
         n_acc, forced, new_slope = _accept(i, T, s0, nv, odd[i], D, R, M, bound, min_step,
                                            max_step, max_curvature, st_t, h, m, brk, grow,
@@ -225,12 +226,12 @@ def _step(i0, T, start, n_valid, odd, L, pix, st_t, st_L, h, m, brk, grow, slope
         if n_acc == 0:
             continue
         slope[i] = new_slope
-        # the path s_{−2}, s_{−1}, s_0, accepted samples
-        for k in range(3):
+        # the path s_{−4} … s_0, accepted samples
+        for k in range(KEEP):
             pt[k], pL[k] = st_t[i, k], st_L[i, k]
         for k in range(n_acc):
-            pt[3 + k], pL[3 + k] = T[s0 + k], L[s0 + k]
-        length = n_acc + 3
+            pt[KEEP + k], pL[KEEP + k] = T[s0 + k], L[s0 + k]
+        length = n_acc + KEEP
         done = 1 if pt[length - 1] >= 1.0 else 0
         nt = find_turns(pt, pL, length, done, cbound, tol, ct, cv)
         if nt and queue_turns(i, pt, pL, nt, ct, cv, ref[i], on[i], off[i], tol, tr_i,
@@ -252,7 +253,7 @@ def _commit_turned(a, tr_i, tr_tb, tr_Lb, tr_moved, tr_gap, Wt, WL, wlen, wdone,
     on): with the best points of their moved turns merged into the path in time order
     (ties after the path's own point) where one of them gained a crossing (``moved`` and
     ``gap ≤ 0``), from the original path otherwise. Stops before a pixel whose events
-    might not fit. ``pt, pL`` (``[M + 3 + K]``) and ``xt, xL`` (``[K]``) are scratch
+    might not fit. ``pt, pL`` (``[M + KEEP + K]``) and ``xt, xL`` (``[K]``) are scratch
     space. Returns ``(next turn, n)``; all done when the first is ``len(tr_i)``."""
     K = tr_i.size
     while a < K:
@@ -298,10 +299,8 @@ def _in_batches(signal: Callable, g: np.ndarray, t: np.ndarray,
     if n <= SIGNAL_BATCH:
         return signal(g, t)
     first = signal(g[:SIGNAL_BATCH], t[:SIGNAL_BATCH])
-    if out is not None and out.dtype == first.dtype and out.size >= n:
-        L = out[:n]
-    else:
-        L = np.empty(n, first.dtype)
+    fits = out is not None and out.dtype == first.dtype and out.size >= n
+    L = out[:n] if fits else np.empty(n, first.dtype)
     L[:SIGNAL_BATCH] = first
     for a in range(SIGNAL_BATCH, n, SIGNAL_BATCH):
         e = min(a + SIGNAL_BATCH, n)
@@ -313,9 +312,9 @@ def _scratch(M: int, K: int = 0) -> tuple[np.ndarray, ...]:
     """Scratch space of :func:`_step` (``K = 0``) or of :func:`_commit_turned` for ``K``
     turns, which allocate nothing themselves (:func:`~eventrecon.sim.jit.njit_borrowing`)."""
     if K:
-        return np.empty(M + 3 + K), np.empty(M + 3 + K), np.empty(K), np.empty(K)
-    return (np.empty(M), np.empty(M), np.empty(M + 3), np.empty(M + 3),
-            np.empty(M + 2, np.int64), np.empty((M + 2, 3)))
+        return np.empty(M + KEEP + K), np.empty(M + KEEP + K), np.empty(K), np.empty(K)
+    return (np.empty(M), np.empty(M), np.empty(M + KEEP), np.empty(M + KEEP),
+            np.empty(M + KEEP, np.int64), np.empty((M + KEEP, 3)))
 
 
 def run_compiled(signal: Callable, pix: np.ndarray, setup, s, stats: dict
@@ -337,13 +336,13 @@ def run_compiled(signal: Callable, pix: np.ndarray, setup, s, stats: dict
     P, M = pix.size, s.block
     L0 = signal(pix, np.zeros(P)) if P else np.zeros(0)
     stats["n_samples"] += P
-    st_t, st_L = np.zeros((P, 3)), np.repeat(L0[:, None], 3, 1)
+    st_t, st_L = np.zeros((P, KEEP)), np.repeat(L0[:, None], KEEP, 1)
     h, m = np.full(P, s.max_step), np.full(P, M, np.int64)
     brk, grow = np.zeros(P, bool), np.zeros(P, bool)
     slope, ref = np.full(P, np.nan), L0.copy()
     on = setup.theta_on[pix].astype(np.float64)
     off = setup.theta_off[pix].astype(np.float64)
-    Wt, WL = np.empty((P, M + 3)), np.empty((P, M + 3))      # paths waiting for turns
+    Wt, WL = np.empty((P, M + KEEP)), np.empty((P, M + KEEP))   # paths waiting for turns
     wlen, wdone = np.zeros(P, np.int64), np.zeros(P, np.int64)
     K_max = P * (M + 1)                          # at most n_acc + 1 turns per path
     tr = (np.empty(K_max, np.int64), np.empty(K_max, np.int64), np.empty(K_max),
@@ -365,7 +364,7 @@ def run_compiled(signal: Callable, pix: np.ndarray, setup, s, stats: dict
 
     while pix.size:
         it += 1
-        G, T, start, n_valid, odd = buffers.plan(pix, st_t[:, 2], h, grow, m, s.max_step)
+        G, T, start, n_valid, odd = buffers.plan(pix, st_t[:, -1], h, grow, m, s.max_step)
         L = _in_batches(signal, G, T, buffers.L)
         stats["n_samples"] += T.size
         i, K = 0, 0
@@ -390,7 +389,7 @@ def run_compiled(signal: Callable, pix: np.ndarray, setup, s, stats: dict
                 if a == K:
                     break
                 ev, n = chunk(n), 0
-        running = st_t[:, 2] < 1.0
+        running = st_t[:, -1] < 1.0
         n_run = np.count_nonzero(running)
         if n_run == 0 or n_run < DROP * running.size:   # finished pixels cost little
             keep = np.flatnonzero(running)

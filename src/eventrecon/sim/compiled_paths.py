@@ -17,7 +17,16 @@ from collections.abc import Callable
 
 import numpy as np
 
-from eventrecon.sim.crossing import BRACKETED_STEPS, CONVERGED, QUARTERS, SECOND_STEP
+from eventrecon.sim.crossing import (
+    BRACKETED_STEPS,
+    CONVERGED,
+    FIRST_LEG,
+    FIRST_TURN,
+    HOLD,
+    KEEP,
+    QUARTERS,
+    SECOND_STEP,
+)
 from eventrecon.sim.jit import njit, njit_borrowing, njit_inline
 
 __all__ = ["clip", "parabola", "cross_time", "room", "commit_path", "turn", "find_turns",
@@ -175,14 +184,14 @@ def room(pL, length, th):
 
 @njit_inline
 def commit_path(pt, pL, length, done, i, gid, st_t, st_L, ref, on, off, bg, bt, bp, n):
-    """Emit the crossings of the legs ``c → c+1``, ``1 ≤ c < length − 2 + done``, of one
-    pixel's path (the last leg waits for its right neighbour unless the path ends) into
-    ``bg, bt, bp`` from ``n`` on (room for :func:`room` events is the caller's), time
-    them, update the pixel's reference level and keep the last three points as its state.
-    Returns the new ``n``."""
+    """Emit the crossings of the legs ``c → c+1``, ``FIRST_LEG ≤ c < length − 1 − HOLD``
+    (``< length − 1`` once ``done``), of one pixel's path (the last legs wait for their
+    right neighbours unless the path ends) into ``bg, bt, bp`` from ``n`` on (room for
+    :func:`room` events is the caller's), time them, update the pixel's reference level
+    and keep the last ``KEEP`` points as its state. Returns the new ``n``."""
     r, th_on, th_off = ref[i], on[i], off[i]
     hi, lo = r + th_on, r - th_off
-    for c in range(1, length - 2 + done):
+    for c in range(FIRST_LEG, length - 1 - HOLD * (1 - done)):
         Lb = pL[c + 1]
         while Lb >= hi or Lb <= lo:              # ref − θ_off < L < ref + θ_on after
             up = Lb >= hi
@@ -191,8 +200,8 @@ def commit_path(pt, pL, length, done, i, gid, st_t, st_L, ref, on, off, bg, bt, 
             n += 1
             hi, lo = r + th_on, r - th_off
     ref[i] = r
-    for k in range(3):
-        st_t[i, k], st_L[i, k] = pt[length - 3 + k], pL[length - 3 + k]
+    for k in range(KEEP):
+        st_t[i, k], st_L[i, k] = pt[length - KEEP + k], pL[length - KEEP + k]
     return n
 
 
@@ -222,13 +231,14 @@ def vertex_may_gain(xa, xb, xc, xv, over, gap, tol):
 @njit_inline
 def find_turns(pt, pL, length, done, cbound, tol, ct, cv):
     """Smooth turns of a path (``_turns`` of the numpy core): where the steps change sign
-    at a sample ``2 ≤ c ≤ length − 2`` and, on a path that ends, before its last leg.
+    at a sample ``FIRST_TURN ≤ c ≤ length − 2`` and, on a path that ends, before its last
+    leg.
     Writes their samples to ``ct`` and ``(sign, x, y)`` to the rows of ``cv``: +1 at a
     peak, then the vertex of the parabola through the turn and its neighbours. Returns
     how many."""
     nt = 0
-    last = length - 2 if done and length >= 5 else -1    # the last leg of an ending path
-    for c in range(2, length - 1):
+    last = length - 2 if done and length >= KEEP + 2 else -1   # an ending path's last leg
+    for c in range(FIRST_TURN, length - 1):
         prod = (pL[c] - pL[c - 1]) * (pL[c + 1] - pL[c])
         if prod < 0 or (c == last and prod > 0):
             keep, sg, xv, yv, _ = turn(pt, pL, c, cbound, tol)
@@ -253,7 +263,7 @@ def queue_turns(i, pt, pL, nt, ct, cv, r0, th_on, th_off, tol, tr_i, tr_c, tr_si
         gap = -np.inf
         if nt == 1:
             r = r0
-            for cc in range(1, c):
+            for cc in range(FIRST_LEG, c):
                 Lb = pL[cc + 1]
                 while Lb >= r + th_on:
                     r += th_on

@@ -18,7 +18,7 @@ one); a point beyond the path's end is not a node.
 The root of ``ℓ(s) = u``, ``u = (level − L_c)/(L_{c+1} − L_c)``, starts from the root in
 ``[0, 1]`` of the quadratic part ``s + C_0·s(s−1) = u`` (closed form; ``u`` itself with no
 outer node) and takes a Newton step, and a second where the first moved it by more than
-``1e-2`` (17 % of the crossings on the benchmark's grating); kept where it stays in
+``1e-2`` (about a sixth of the crossings on the benchmark's grating); kept where it stays in
 ``[0, 1]`` on positive slopes within 0.1 of the start. Where it lands farther (a strongly
 curved leg), two more steps follow, kept where the slopes stay positive, the last step
 moved it by less than ``1e-3`` and the polynomial lies below ``u`` at a quarter, half and
@@ -28,17 +28,16 @@ on the leg is taken: the first sign change on a grid of 33 points, then six Newt
 kept inside that bracket (a bisection where a step would leave it); a polynomial with a
 non-finite coefficient gives the straight-leg time.
 
-**Order at a block's edges.** The core keeps three points of a pixel's path between
-iterations and holds back its last leg, so the first leg it emits in an iteration has one
-neighbour on its left and the last leg one on its right: those crossings are timed on a
-quartic (a cubic where a block is one sample long). On the benchmark's grating at θ = 0.5
-that is 29 % of the crossings, with a median error of 0.49 µs against 0.11 µs on the
-quintic's legs. Keeping five points and holding back two legs would give every interior
-leg the quintic.
+The core keeps five points of a pixel's path between iterations and holds back its last
+two legs (:data:`KEEP`, :data:`HOLD`), so every leg but a path's first two and last two
+has both its neighbours a side when it is timed. (Sessions before 58's last commit kept
+three points and held back one leg: the first and last leg of every block lacked a node,
+29 % of the grating's crossings at θ = 0.5, timed on a quartic with a median error of
+0.49 µs against 0.11 µs on the quintic's legs.)
 
 The interpolation error of the time falls as ``h⁶`` (the cubic through ``c−1 … c+2``
 that sessions before 58 used: ``h⁴``): on the benchmark's sliding grating the median
-error fell from 0.93 to 0.17 µs at θ = 0.5, and from 0.118 to 0.009 µs at θ = 0.2, for
+error fell from 0.93 to 0.14 µs at θ = 0.5, and from 0.118 to 0.005 µs at θ = 0.2, for
 the same samples (``docs/results/event_core.md``). :func:`cross_times` is the numpy form;
 :func:`eventrecon.sim.compiled_paths.cross_time` the scalar one, expression for expression,
 so both engines give the same bits.
@@ -53,6 +52,14 @@ __all__ = ["cross_times", "newton_form", "first_root", "poly"]
 #: Outer nodes in the order they enter the Newton form: offsets from the leg's start
 #: ``c`` and their side (``-1`` left, ``+1`` right).
 NODES = ((-1, -1), (2, 1), (-2, -1), (3, 1))
+#: Points of a pixel's path the core keeps between iterations, and the legs it holds back
+#: (both engines): a leg is emitted once its two right neighbours are sampled, and the
+#: first leg of the next path still has its two left ones. In a path of the kept points
+#: and new samples the legs ``FIRST_LEG … length − 2 − HOLD`` are emitted (all to the end
+#: once the path reaches ``t = 1``), and the turns at samples ``FIRST_TURN … length − 2``
+#: are new (their right neighbour arrived).
+KEEP, HOLD = 5, 2
+FIRST_LEG, FIRST_TURN = KEEP - 1 - HOLD, KEEP - 1
 #: A second Newton step is taken where the first moved the root by more than this
 #: (Newton's error after a step of ``δ`` is about ``δ²·ℓ''/2ℓ'``).
 SECOND_STEP = 1e-2

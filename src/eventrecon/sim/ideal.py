@@ -188,7 +188,7 @@ def _sample(signal: SignalFn, st: PathState, sel, setup: SignalSetup, s: CoreSet
     rejected sample, choose the next step. Returns ``(T, Lr, Lf, D, n_acc [N])``, ``D``
     the steps of ``Lf``."""
     M, bound = s.block, s.max_log_step * s.threshold
-    h0, t0, gr, n_valid = st.h[sel].copy(), st.t[2, sel], st.grow[sel], st.m[sel]
+    h0, t0, gr, n_valid = st.h[sel].copy(), st.t[-1, sel], st.grow[sel], st.m[sel]
     N, ar = h0.size, np.arange(h0.size)
     T = t0 + _STEPS[:M] * h0
     odd = gr | (n_valid < M)                 # steps h, 2h, 4h, … (at most max_step)
@@ -215,12 +215,12 @@ def _sample(signal: SignalFn, st: PathState, sel, setup: SignalSetup, s: CoreSet
     Lf = Lr
     if setup.lowpass is not None:
         dT = np.diff(T, axis=0, prepend=t0[None])
-        Lf, yf, yr = np.empty_like(Lr), st.Lf[2, sel], st.Lr[2, sel]
+        Lf, yf, yr = np.empty_like(Lr), st.Lf[-1, sel], st.Lr[-1, sel]
         for k in range(M):
             yf = Lf[k] = setup.lowpass(yf, yr, Lr[k], dT[k])
             yr = Lr[k]
     D = np.empty_like(Lf)
-    D[0] = Lf[0] - st.Lf[2, sel]
+    D[0] = Lf[0] - st.Lf[-1, sel]
     np.subtract(Lf[1:], Lf[:-1], out=D[1:])
     # R = max(|ΔL|, |Δ²L|/max_curvature): a sample is kept while R ≤ β
     R = np.empty_like(D)
@@ -236,7 +236,7 @@ def _sample(signal: SignalFn, st: PathState, sel, setup: SignalSetup, s: CoreSet
         R *= 1.0 / s.max_curvature
     np.fmax(R, np.abs(D), out=R)
     if setup.lowpass is not None:
-        np.maximum(R, np.abs(np.diff(Lr, axis=0, prepend=st.Lr[2, sel][None])), out=R)
+        np.maximum(R, np.abs(np.diff(Lr, axis=0, prepend=st.Lr[-1, sel][None])), out=R)
     n_acc = np.minimum(M - ((R > bound) * _FIRST[-M:]).max(0), n_valid)
     forced = h0 <= s.min_step * (1 + 1e-9)
     if forced.any():
@@ -278,8 +278,8 @@ def _calm(st: PathState, tol: float, max_step: float, block: int
 
     Returns ``(to_sample, calm, t_next)`` (index arrays and times)."""
     K = st.busy.shape[1]
-    k = np.minimum(np.floor(st.t[2] * K + 1e-9).astype(np.int64), K - 1)
-    calm = ~st.busy[st.row, k] & (np.abs(st.Lf[2] - st.Lr[2]) <= tol)
+    k = np.minimum(np.floor(st.t[-1] * K + 1e-9).astype(np.int64), K - 1)
+    calm = ~st.busy[st.row, k] & (np.abs(st.Lf[-1] - st.Lr[-1]) <= tol)
     ci = np.flatnonzero(calm)
     later = st.busy[st.row[ci]] & (np.arange(K)[None, :] > k[ci, None])
     j = np.where(later.any(1), later.argmax(1), K)
@@ -346,13 +346,13 @@ def _run_numpy(signal: SignalFn, pix: np.ndarray, setup: SignalSetup, settings: 
         if busy is not None:
             sel, calm, t_next = _calm(st, tol, settings.max_step, settings.block)
             if calm.size:
-                commit(signal, st, calm, t_next[None], st.Lr[2, calm][None],
-                       st.Lf[2, calm][None], np.zeros((1, calm.size)),
+                commit(signal, st, calm, t_next[None], st.Lr[-1, calm][None],
+                       st.Lf[-1, calm][None], np.zeros((1, calm.size)),
                        np.ones(calm.size, np.int64), setup, settings, stats, out, rec)
         if isinstance(sel, slice) or sel.size:
             T, Lr, Lf, D, n_acc = _sample(signal, st, sel, setup, settings, stats)
             commit(signal, st, sel, T, Lr, Lf, D, n_acc, setup, settings, stats, out, rec)
-        running = st.t[2] < 1.0
+        running = st.t[-1] < 1.0
         if not running.all():
             st.keep(running)
     return out, rec, it

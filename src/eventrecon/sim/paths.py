@@ -33,16 +33,17 @@ from collections.abc import Callable
 import numpy as np
 
 from eventrecon.sim.core_settings import CoreSettings, SignalSetup
-from eventrecon.sim.crossing import cross_times
+from eventrecon.sim.crossing import FIRST_LEG, FIRST_TURN, HOLD, KEEP, cross_times
 
 __all__ = ["PathState", "commit", "cross_times", "refine_turns"]
 
 
 class PathState:
-    """Per running pixel: global id, row of ``busy``, the last three path points
-    ``s_{−2}, s_{−1}, s_0`` (``t, Lf, Lr [3, P]``; the leg ``s_{−1} → s_0`` is not emitted
-    yet), step ``h``, block length ``m``, bisection / growth flags, last slope (NaN:
-    unknown), reference level and thresholds (see :func:`~eventrecon.sim.ideal.run_core`)."""
+    """Per running pixel: global id, row of ``busy``, the last ``KEEP`` path points
+    ``s_{−4} … s_0`` (``t, Lf, Lr [KEEP, P]``, :data:`eventrecon.sim.crossing.KEEP`; the
+    legs ``s_{−2} → s_{−1} → s_0`` are not emitted yet), step ``h``, block length ``m``,
+    bisection / growth flags, last slope (NaN: unknown), reference level and thresholds
+    (see :func:`~eventrecon.sim.ideal.run_core`)."""
 
     FIELDS = ("pix", "row", "t", "Lf", "Lr", "h", "m", "brk", "grow", "slope", "ref", "on",
               "off")
@@ -50,8 +51,8 @@ class PathState:
     def __init__(self, pix: np.ndarray, L0: np.ndarray, setup: SignalSetup, s: CoreSettings,
                  busy: np.ndarray | None):
         P = pix.size
-        self.pix, self.row, self.t, self.busy = pix, np.arange(P), np.zeros((3, P)), busy
-        self.Lf = np.repeat(L0[None], 3, 0)
+        self.pix, self.row, self.t, self.busy = pix, np.arange(P), np.zeros((KEEP, P)), busy
+        self.Lf = np.repeat(L0[None], KEEP, 0)
         self.Lr = self.Lf if setup.lowpass is None else self.Lf.copy()  # no filter: one array
         self.h, self.m = np.full(P, s.max_step), np.full(P, s.block)
         self.brk, self.grow = np.zeros(P, bool), np.zeros(P, bool)
@@ -84,20 +85,22 @@ def _parabola(xa, ya, xb, yb, xc, yc) -> tuple:
 def _turns(P: list, D: np.ndarray, length: np.ndarray, done: np.ndarray,
            s: CoreSettings) -> tuple:
     """Smooth turns of the paths ``P = [t, Lf, Lr]`` (``[C, n]``) at samples
-    ``2 ≤ c ≤ length − 2`` (sign change of the steps: ``D`` are the legs from column 2
-    on; on a path that ends (``done``) also before its last leg, where a turn has no
-    later sample to show it) whose parabola reaches more than ``turn_tol·θ/2`` beyond.
+    ``FIRST_TURN ≤ c ≤ length − 2`` (sign change of the steps: ``D`` are the legs from
+    column ``FIRST_TURN`` on; on a path that ends (``done``) also before its last leg,
+    where a turn has no later sample to show it) whose parabola reaches more than
+    ``turn_tol·θ/2`` beyond.
 
     Returns ``(c, i, sig, tri)``: ``sig`` +1 at a peak, ``tri`` the three points
     ``[[ta, tb, tc], [La, Lb, Lc], [ra, rb, rc]]``.
     """
     n = D.shape[1]
-    j, i = np.divmod(np.flatnonzero((P[1][2] - P[1][1]) * D[0] < 0), n)
+    first = (P[1][FIRST_TURN] - P[1][FIRST_TURN - 1]) * D[0] < 0
+    j, i = np.divmod(np.flatnonzero(first), n)
     j2, i2 = np.divmod(np.flatnonzero(D[:-1] * D[1:] < 0), n)
-    c, i = np.concatenate([j + 2, j2 + 3]), np.concatenate([i, i2])
+    c, i = np.concatenate([j + FIRST_TURN, j2 + KEEP]), np.concatenate([i, i2])
     ok = c <= length[i] - 2
     c, i = c[ok], i[ok]
-    end = np.flatnonzero(done & (length >= 5))
+    end = np.flatnonzero(done & (length >= KEEP + 2))
     if end.size:                             # the last leg of an ending path
         ce = length[end] - 2
         Q = P[1]
@@ -158,7 +161,7 @@ def refine_turns(signal: Callable, g: np.ndarray, sig: np.ndarray, tri: list,
 
 def _emit(st: PathState, ids: np.ndarray, hot: np.ndarray, PL: np.ndarray, stop: np.ndarray,
           redraw: Callable | None, snap: bool) -> tuple:
-    """Crossings of the legs ``c → c+1``, ``1 ≤ c < stop``, of the paths ``PL`` of the
+    """Crossings of the legs ``c → c+1``, ``FIRST_LEG ≤ c < stop``, of the paths ``PL`` of the
     columns ``hot`` (pixels ``ids[hot]``), leg by leg; updates their reference level.
 
     Returns ``((c, column, level, up), snapshot)``; the snapshot (if ``snap``) holds the
@@ -171,7 +174,7 @@ def _emit(st: PathState, ids: np.ndarray, hot: np.ndarray, PL: np.ndarray, stop:
     hi, lo, g = r + on, r - off, st.pix[ids[hot]]
     Rs = np.empty((C, hot.size)) if snap else None
     rec: list = []
-    for c in range(1, C - 1):
+    for c in range(FIRST_LEG, C - 1):
         if snap:
             Rs[c] = r
         m = live[c + 1]
@@ -197,6 +200,32 @@ def _emit(st: PathState, ids: np.ndarray, hot: np.ndarray, PL: np.ndarray, stop:
     return rec, Rs
 
 
+def _walk_held(r: np.ndarray, PL: np.ndarray, i: np.ndarray, a: np.ndarray, c: np.ndarray,
+               on: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """The reference levels ``r [K]`` of the columns ``i`` of the paths ``PL`` at samples
+    ``a`` carried on to the samples ``c ≥ a`` over the held-back legs between (at most
+    ``HOLD``), level by level as emission would, emitting nothing (the compiled core's
+    ``queue_turns`` walk)."""
+    r = r.copy()
+    for k in range(HOLD):
+        act = np.flatnonzero(a + k < c)
+        if not act.size:
+            break
+        Lb, ra = PL[a[act] + k + 1, i[act]], r[act]
+        while (up := Lb >= ra + on[act]).any():
+            ra = np.where(up, ra + on[act], ra)
+        while (dn := Lb <= ra - off[act]).any():
+            ra = np.where(dn, ra - off[act], ra)
+        r[act] = ra
+    return r
+
+
+def _stop(length: np.ndarray, done: np.ndarray) -> np.ndarray:
+    """End (exclusive) of the legs a path of ``length`` points emits: all but the last
+    ``HOLD``, all of them once it reaches ``t = 1`` (``done``)."""
+    return length - 1 - HOLD * (1 - done.astype(np.int64))
+
+
 def _insert(P: list, length: np.ndarray, col: np.ndarray, pts: list) -> tuple:
     """The paths ``P`` (``[C, n]``) of the columns ``col`` with the points ``pts``
     (``[t, Lf, Lr]``) merged in time order: ``(cols, P', length')``."""
@@ -218,7 +247,7 @@ def _insert(P: list, length: np.ndarray, col: np.ndarray, pts: list) -> tuple:
 def _finish(st: PathState, ids: np.ndarray, P: list, length: np.ndarray, events: list,
             out: list) -> None:
     """Time the ``events`` of the paths ``P`` of pixels ``ids`` into ``out``; keep each
-    path's last three points as the state."""
+    path's last ``KEEP`` points as the state."""
     if events:
         ec, ei, level, up = (np.concatenate([x[j] for x in events]) for j in range(4))
         t = cross_times(P[0], P[1], ec, ei, level, length)
@@ -227,7 +256,7 @@ def _finish(st: PathState, ids: np.ndarray, P: list, length: np.ndarray, events:
     last = (length - 1) * n + np.arange(n)
     for S, Q in zip((st.t, st.Lf, st.Lr) if st.Lr is not st.Lf else (st.t, st.Lf), P):
         Qf = Q.ravel()
-        S[:, ids] = np.stack([Qf[last - 2 * n], Qf[last - n], Qf[last]])
+        S[:, ids] = np.stack([Qf[last - (KEEP - 1 - k) * n] for k in range(KEEP)])
 
 
 def commit(signal: Callable, st: PathState, sel, T: np.ndarray, Lr: np.ndarray,
@@ -236,7 +265,7 @@ def commit(signal: Callable, st: PathState, sel, T: np.ndarray, Lr: np.ndarray,
     """Append the first ``n_acc`` samples of the blocks ``T, Lr, Lf`` (``[M, N]``, steps
     ``D`` of ``Lf``; rows beyond are later samples, not part of the paths) to
     the paths of the pixels ``sel``, emit and refine (module docstring), append the
-    events ``(g, t, p)`` to ``out`` and keep each path's last three points."""
+    events ``(g, t, p)`` to ``out`` and keep each path's last ``KEEP`` points."""
     ids = np.arange(st.pix.size)[sel]
     if n_acc.min() < 1:
         keep = n_acc > 0
@@ -249,12 +278,13 @@ def commit(signal: Callable, st: PathState, sel, T: np.ndarray, Lr: np.ndarray,
     pick = (lambda a: a[:, sel]) if isinstance(sel, slice) else (lambda a: a.take(sel, 1))
     P = [np.concatenate([pick(old), new, new[-1:]]) for old, new in ((st.t, T), (st.Lf, Lf))]
     P.append(P[1] if st.Lr is st.Lf else np.concatenate([pick(st.Lr), Lr, Lr[-1:]]))
-    length = n_acc + 3
+    length = n_acc + KEEP
     if rec is not None:
         kept = np.arange(M)[:, None] < n_acc
         rec.append((np.broadcast_to(st.pix[ids], (M, n))[kept], T[kept], Lf[kept]))
     ref0, on0, off0 = st.ref[ids], st.on[ids], st.off[ids]
-    hot = (P[1][1:].max(0) >= ref0 + on0) | (P[1][1:].min(0) <= ref0 - off0)
+    hot = ((P[1][FIRST_LEG + 1:].max(0) >= ref0 + on0)
+           | (P[1][FIRST_LEG + 1:].min(0) <= ref0 - off0))
     done = P[0][length - 1, np.arange(n)] >= 1.0
     c, i, sig, tri = _turns(P, D, length, done, s)
     tol = 0.5 * s.turn_tol * s.threshold
@@ -264,11 +294,13 @@ def commit(signal: Callable, st: PathState, sel, T: np.ndarray, Lr: np.ndarray,
                              setup, tol, stats)
         redo = np.unique(i[moved])
         hot[redo] = False
-    events, Rs = _emit(st, ids, np.flatnonzero(hot), P[1], length - 2 + done, setup.redraw,
+    stop = _stop(length, done)
+    events, Rs = _emit(st, ids, np.flatnonzero(hot), P[1], stop, setup.redraw,
                        setup.redraw is None and c.size > 0)
     if setup.redraw is None and c.size:          # refine the turns that may reach a level
         pos = np.cumsum(hot) - 1
         r_at = np.where(hot[i], Rs[c, pos[i]] if hot.any() else 0.0, ref0[i])
+        r_at = _walk_held(r_at, P[1], i, stop[i], c, on0[i], off0[i])
         gap = sig * (np.where(sig > 0, r_at + on0[i], r_at - off0[i]) - tri[1][1])
         gap[np.bincount(i, minlength=n)[i] > 1] = -np.inf     # two turns: refine both
         moved = refine_turns(signal, st.pix[ids[i]], sig, tri, np.ones(c.size, bool), gap,
@@ -286,7 +318,7 @@ def commit(signal: Callable, st: PathState, sel, T: np.ndarray, Lr: np.ndarray,
         if rec is not None:
             rec.append((st.pix[ids[i[m]]], tri[0][1][m], tri[1][1][m]))
         cols, Pv, nv = _insert(P, length, i[m], [q[1][m] for q in tri])
-        ev_v = _emit(st, ids[cols], np.arange(cols.size), Pv[1], nv - 2 + done[cols],
+        ev_v = _emit(st, ids[cols], np.arange(cols.size), Pv[1], _stop(nv, done[cols]),
                      setup.redraw, False)[0]
         _finish(st, ids, P, length, events, out)     # the state of ``cols`` is replaced:
         _finish(st, ids[cols], Pv, nv, ev_v, out)

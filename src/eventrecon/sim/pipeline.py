@@ -45,8 +45,9 @@ log = logging.getLogger(__name__)
 #: files put pixel centres at ``i + 0.5``, as the authors' code reads them
 #: (:data:`eventrecon.render.cameras.FILE_PIXEL_CENTRE`); the simulated pixels are unchanged.
 #: 6: event times on the quintic through the leg and two neighbours a side
-#: (:mod:`eventrecon.sim.crossing`; the cubic through one a side before).
-SIM_VERSION: int = 6
+#: (:mod:`eventrecon.sim.crossing`; the cubic through one a side before). 7: the core
+#: keeps five path points and holds back two legs, so a block's edge legs have them too.
+SIM_VERSION: int = 7
 
 
 def _meta(spec: SceneSpec, stats: dict) -> dict:
