@@ -344,7 +344,7 @@ def run_compiled(signal: Callable, pix: np.ndarray, setup, s, stats: dict
     off = setup.theta_off[pix].astype(np.float64)
     Wt, WL = np.empty((P, M + KEEP)), np.empty((P, M + KEEP))   # paths waiting for turns
     wlen, wdone = np.zeros(P, np.int64), np.zeros(P, np.int64)
-    K_max = P * (M + 1)                          # at most n_acc + 1 turns per path
+    K_max = P * (M + 1)                          # at most n_acc turns per path
     tr = (np.empty(K_max, np.int64), np.empty(K_max, np.int64), np.empty(K_max),
           np.empty(K_max))
     parts: list = []                             # full event chunks

@@ -231,8 +231,8 @@ def vertex_may_gain(xa, xb, xc, xv, over, gap, tol):
 @njit_inline
 def find_turns(pt, pL, length, done, cbound, tol, ct, cv):
     """Smooth turns of a path (``_turns`` of the numpy core): where the steps change sign
-    at a sample ``FIRST_TURN ≤ c ≤ length − 2`` and, on a path that ends, before its last
-    leg.
+    at a sample ``FIRST_TURN ≤ c ≤ length − 2`` (and, on a path that ends, before its
+    last leg).
     Writes their samples to ``ct`` and ``(sign, x, y)`` to the rows of ``cv``: +1 at a
     peak, then the vertex of the parabola through the turn and its neighbours. Returns
     how many."""

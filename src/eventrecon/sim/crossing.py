@@ -30,7 +30,7 @@ non-finite coefficient gives the straight-leg time.
 
 The core keeps five points of a pixel's path between iterations and holds back its last
 two legs (:data:`KEEP`, :data:`HOLD`), so every leg but a path's first two and last two
-has both its neighbours a side when it is timed. (Sessions before 58's last commit kept
+has both its neighbours a side when it is timed. (Before commit ``079df7d`` the core kept
 three points and held back one leg: the first and last leg of every block lacked a node,
 29 % of the grating's crossings at θ = 0.5, timed on a quartic with a median error of
 0.49 µs against 0.11 µs on the quintic's legs.)
