@@ -5,8 +5,9 @@ Each running pixel of :func:`~eventrecon.sim.ideal.run_core` keeps a *path*: its
 to the paths of many pixels at once (laid out ``[sample, pixel]``) and
 
 1. emits the crossings of every leg but the last ``HOLD`` (they wait for their two right
-   neighbours; :data:`~eventrecon.sim.crossing.KEEP`): while a leg reaches ``L ≥ r + θ_on`` an ON event fires and
-   ``r ← r + θ_on`` (OFF alike), leg by leg, in path order, noting ``r`` at each sample;
+   neighbours; :data:`~eventrecon.sim.crossing.KEEP`): while a leg reaches
+   ``L ≥ r + θ_on`` an ON event fires and ``r ← r + θ_on`` (OFF alike), leg by leg, in
+   path order, noting ``r`` at each sample;
 2. refines the *turns*: where the steps of ``L`` change sign at a sample ``s_k``, the
    parabola through ``s_{k−1}, s_k, s_{k+1}`` puts the extremum more than
    ``turn_tol·θ/2`` beyond ``L(s_k)`` and the next level (``r ± θ`` at ``s_k``) lies
