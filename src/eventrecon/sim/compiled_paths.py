@@ -20,10 +20,13 @@ import numpy as np
 from eventrecon.sim.crossing import (
     BRACKETED_STEPS,
     CONVERGED,
+    FAR,
     FIRST_LEG,
     FIRST_TURN,
+    GRID,
     HOLD,
     KEEP,
+    NODES,
     QUARTERS,
     SECOND_STEP,
 )
@@ -71,15 +74,15 @@ def _poly(s, C0, C1, C2, C3, Z0, Z1, Z2):
 @njit
 def _scan_root(u, C0, C1, C2, C3, Z0, Z1, Z2):
     """The first root of ``ℓ(s) = u`` on ``[0, 1]``: the first sign change on a grid of
-    33 points, then Newton steps kept inside that bracket (the rare path of
+    ``GRID + 1`` points, then Newton steps kept inside that bracket (the rare path of
     :func:`cross_time`, kept out of line)."""
     k = 0
-    for j in range(33):
-        if _poly(j / 32, C0, C1, C2, C3, Z0, Z1, Z2)[0] - u >= 0:
+    for j in range(GRID + 1):
+        if _poly(j / GRID, C0, C1, C2, C3, Z0, Z1, Z2)[0] - u >= 0:
             k = j
             break
     k = max(k, 1)
-    lo, hi = (k - 1) / 32, k / 32
+    lo, hi = (k - 1) / GRID, k / GRID
     x = 0.5 * (lo + hi)
     for _ in range(BRACKETED_STEPS):
         qx, dx = _poly(x, C0, C1, C2, C3, Z0, Z1, Z2)
@@ -111,11 +114,11 @@ def cross_time(pt, pL, c, length, level):
     zl = zr = 0.0                                # the outer node taken on each side
     okl = okr = False
     for k in range(4):                           # nodes c−1, c+2, c−2, c+3
-        j = c - 1 if k == 0 else (c + 2 if k == 1 else (c - 2 if k == 2 else c + 3))
-        if j < 0 or j > last or (k >= 2 and not (okl if k == 2 else okr)):
+        j, left = c + NODES[k][0], NODES[k][1] < 0
+        if j < 0 or j > last or (k >= 2 and not (okl if left else okr)):
             continue
         z, y = (pt[j] - x1) * ih, (pL[j] - y1) * iD
-        if k % 2 == 0:
+        if left:
             if not z < (0.0 if k == 0 else zl):
                 continue
             zl, okl = z, True
@@ -158,7 +161,7 @@ def cross_time(pt, pL, c, length, level):
         s = s - (q - u) / d
         ok = ok and d > 0
     ok = ok and (s >= 0.0) and (s <= 1.0)
-    if ok and not abs(s - s0) < 0.1:              # two more steps; below u before it
+    if ok and not abs(s - s0) < FAR:             # two more steps; below u before it
         q2, d2 = _poly(s, C0, C1, C2, C3, Z0, Z1, Z2)
         s3 = s - (q2 - u) / d2
         q3, d3 = _poly(s3, C0, C1, C2, C3, Z0, Z1, Z2)

@@ -63,13 +63,15 @@ FIRST_LEG, FIRST_TURN = KEEP - 1 - HOLD, KEEP - 1
 #: A second Newton step is taken where the first moved the root by more than this
 #: (Newton's error after a step of ``δ`` is about ``δ²·ℓ''/2ℓ'``).
 SECOND_STEP = 1e-2
-#: A root more than 0.1 from the quadratic part's is the leg's first when the
-#: polynomial is below the level at these fractions of it.
-QUARTERS = (0.25, 0.5, 0.75)
+#: A root farther than this from the quadratic part's (a strongly curved leg) takes two
+#: more steps, and is the leg's first when the polynomial is below the level at these
+#: fractions of it ...
+FAR, QUARTERS = 0.1, (0.25, 0.5, 0.75)
 #: ... and when the last of those steps moved it by less than this.
 CONVERGED = 1e-3
-#: Newton steps inside the first bracket (a bisection where one would leave it).
-BRACKETED_STEPS = 6
+#: Otherwise the first sign change on a grid of ``GRID + 1`` points brackets the first
+#: root, and Newton steps stay inside that bracket (a bisection where one would leave it).
+GRID, BRACKETED_STEPS = 32, 6
 
 
 def poly(s: np.ndarray, C: np.ndarray, Z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -142,7 +144,7 @@ def first_root(u: np.ndarray, C: np.ndarray, Z: np.ndarray) -> np.ndarray:
             s[again] = s[again] - (q - u[again]) / d
             ok[again] &= d > 0
         ok &= (s >= 0.0) & (s <= 1.0)
-        far = np.flatnonzero(ok & ~(np.abs(s - s0) < 0.1))
+        far = np.flatnonzero(ok & ~(np.abs(s - s0) < FAR))
         if far.size:                             # two more steps; below u before it
             Cf, Zf, uf = C[:, far], Z[:, far], u[far]
             q2, d2 = poly(s[far], Cf, Zf)
@@ -157,9 +159,9 @@ def first_root(u: np.ndarray, C: np.ndarray, Z: np.ndarray) -> np.ndarray:
         bad = np.flatnonzero(~ok)
         if bad.size:                             # the first root on the leg: the first
             Cb, Zb, ub = C[:, bad], Z[:, bad], u[bad]   # sign change on a grid, then
-            grid = np.linspace(0.0, 1.0, 33)[:, None]  # Newton kept inside the bracket
+            grid = np.arange(GRID + 1.0)[:, None] / GRID   # Newton kept in the bracket
             k = np.maximum(np.argmax(poly(grid, Cb, Zb)[0] - ub >= 0, axis=0), 1)
-            lo, hi = (k - 1) / 32, k / 32
+            lo, hi = (k - 1) / GRID, k / GRID
             x = 0.5 * (lo + hi)
             for _ in range(BRACKETED_STEPS):
                 qx, dx = poly(x, Cb, Zb)
