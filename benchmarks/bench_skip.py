@@ -49,9 +49,10 @@ from eventrecon.data.batcher import RayBatcher
 from eventrecon.data.selection import heldout_split, training_split
 from eventrecon.evaluate import render_heldout, run_config, score_images
 from eventrecon.fields.base import Field
+from eventrecon.render.clipping import INSIDE_TOL
 from eventrecon.render.occupancy import OccupancyGrid
 from eventrecon.render.occupancy_refined import RefinedGrid
-from eventrecon.render.volume import _INSIDE_TOL, Renderer
+from eventrecon.render.volume import Renderer
 from eventrecon.segments import run_segments
 
 log = logging.getLogger("benchmarks.skip")
@@ -104,7 +105,7 @@ def ray_samples(renderer: Renderer, field: Field, batches: Sequence[dict],
             counts.append(torch.full(s.shape[:1], s.shape[1], device=s.device))
         else:
             pts = o[:, None, :] + s[..., None] * d[:, None, :]
-            inside = renderer.cylinder.inside(pts, renderer.clip_scale, tol=_INSIDE_TOL)
+            inside = renderer.cylinder.inside(pts, renderer.clip_scale, tol=INSIDE_TOL)
             counts.append((keep & inside).sum(-1))
         return query(f, o, d, t, s, keep)
 

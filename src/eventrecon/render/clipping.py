@@ -36,12 +36,15 @@ from torch import Tensor
 
 from eventrecon.errors import InputError
 
-__all__ = ["Cylinder", "PARALLEL_EPS", "NO_CLIPPING"]
+__all__ = ["Cylinder", "INSIDE_TOL", "PARALLEL_EPS", "NO_CLIPPING"]
 
 #: The "w/o clipping" ablation's cylinder: it covers the unit sphere's box.
 NO_CLIPPING: dict[str, float] = {"radius": 1.0, "y_min": -1.0, "y_max": 1.0}
 #: Squared-norm threshold below which a direction counts as parallel to an axis/plane.
 PARALLEL_EPS = 1e-12
+#: The renderer's slack (world units) when testing sample points against the cylinder:
+#: points computed at an interval's ends may land one ulp outside.
+INSIDE_TOL = 1e-5
 
 
 def _quadratic_interval(a: Tensor, b: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:

@@ -36,31 +36,12 @@ import numpy as np
 import torch
 from torch import Tensor
 
-try:
-    import numba
-except ImportError:                              # pragma: no cover - numba is a dependency
-    numba = None
+from eventrecon.render.compiled import AVAILABLE, compiled
 
 __all__ = ["AVAILABLE", "lookup_rays", "supported"]
 
-#: Whether numba could be imported (else :func:`lookup_rays` declines).
-AVAILABLE = numba is not None
 
-
-def _compiled(fn: Any) -> Any:
-    """``fn`` compiled with the options of the simulator's loops
-    (:func:`eventrecon.sim.jit.njit_borrowing`: cached beside this file, NumPy's error
-    model, no GIL, no reference counting). That module is not imported here: the
-    simulator imports the renderer's cameras, and subpackages must not import one
-    another in a cycle (``tests/test_structure.py``). Nor does its stale-cache check
-    cover this file: numba keys the cache on this file alone, so these loops must stay
-    self-contained (no compiled helper from another module)."""
-    if numba is None:                            # pragma: no cover
-        return fn
-    return numba.njit(cache=True, error_model="numpy", nogil=True, _nrt=False)(fn)
-
-
-@_compiled
+@compiled
 def _cells(o: Any, d: Any, tb: Any, s: Any, lo: Any, span: Any, scale: Any, g: int,
            cell: Any) -> None:
     """``cell [n, K]``: the flat cell of sample ``s[r, j]`` of ray ``r``, ``-1`` outside
@@ -87,7 +68,7 @@ def _cells(o: Any, d: Any, tb: Any, s: Any, lo: Any, span: Any, scale: Any, g: i
             cr[m] = ((first + i) * g + j) * g + k if inside else -1
 
 
-@_compiled
+@compiled
 def _gather(cell: Any, occ: Any, out: Any) -> None:
     """``out[m] = occ[cell[m]]`` (flat), ``False`` where ``cell[m] < 0``."""
     for m in range(cell.shape[0]):

@@ -23,7 +23,11 @@ from torch import Tensor
 
 from eventrecon.errors import InputError
 
-__all__ = ["stratified", "sample_pdf", "step_sizes", "pdf_bins"]
+__all__ = ["TAU_MAX", "stratified", "sample_pdf", "step_sizes", "pdf_bins"]
+
+#: The quadrature's clamp of the optical thickness ``σ δ`` of one step (``e^{-TAU_MAX}``
+#: is 0 in float32; :mod:`eventrecon.render.volume`).
+TAU_MAX = 1e4
 
 
 def uniform(shape: tuple[int, ...], gen: torch.Generator | None, like: Tensor) -> Tensor:

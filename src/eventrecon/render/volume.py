@@ -38,20 +38,17 @@ from eventrecon.colour import GREY_LINEAR
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.precision import image_autocast
-from eventrecon.render.clipping import NO_CLIPPING, Cylinder
+from eventrecon.render.clipping import INSIDE_TOL, NO_CLIPPING, Cylinder
+from eventrecon.render.compiled_render import render_final
 from eventrecon.render.occupancy_refined import build_grid
 from eventrecon.render.queries import query_density, query_field
-from eventrecon.render.samplers import pdf_bins, sample_pdf, step_sizes, stratified
+from eventrecon.render.samplers import TAU_MAX, pdf_bins, sample_pdf, step_sizes, stratified
 
 if TYPE_CHECKING:
     from eventrecon.render.cameras import Cameras
 
 __all__ = ["TAU_MAX", "render_weights", "composite", "Renderer"]
 
-#: Optical thickness clamp per step (``e^{-TAU_MAX}`` is 0 in float32).
-TAU_MAX = 1e4
-#: Slack (world units) when testing sample points against the cylinder.
-_INSIDE_TOL = 1e-5
 
 
 def render_weights(sigma: Tensor, delta: Tensor) -> tuple[Tensor, Tensor]:
@@ -155,23 +152,12 @@ class Renderer(nn.Module):
             0: no limit; the same up to rounding; :mod:`eventrecon.render.queries`).
     """
 
-    def __init__(
-        self,
-        n_coarse: int = 64,
-        n_fine: int = 128,
-        radius: float = 0.5,
-        y_min: float = -0.75,
-        y_max: float = 0.25,
-        clip_scale: float = 1.0,
-        chunk: int = 8192,
-        clipping: bool = True,
-        skip: str = "none",
-        occupancy: dict[str, Any] | None = None,
-        march_chunks: int = 4,
-        stop_transmittance: float = 1e-4,
-        query_buckets: int = 8,
-        query_rows: int = 16384,
-    ) -> None:
+    def __init__(self, n_coarse: int = 64, n_fine: int = 128, radius: float = 0.5,
+                 y_min: float = -0.75, y_max: float = 0.25, clip_scale: float = 1.0,
+                 chunk: int = 8192, clipping: bool = True, skip: str = "none",
+                 occupancy: dict[str, Any] | None = None, march_chunks: int = 4,
+                 stop_transmittance: float = 1e-4, query_buckets: int = 8,
+                 query_rows: int = 16384) -> None:
         super().__init__()
         if n_fine < 0:
             raise InputError("renderer", "n_fine", "an integer >= 0", n_fine)
@@ -214,7 +200,7 @@ class Renderer(nn.Module):
         """``[N]`` density (``Field.density_only``) at ``x [N, 3]``, ``t [N, 1]``, zero
         outside the full cylinder (an annealed ``clip_scale`` masks samples at render time
         only), asked as images are: blocks of ``query_rows``, under :meth:`image_autocast`."""
-        inside = self.cylinder.inside(x, 1.0, tol=_INSIDE_TOL)
+        inside = self.cylinder.inside(x, 1.0, tol=INSIDE_TOL)
         with self.image_autocast(x.device):
             sigma = query_density(field, x, t, self.query_buckets, self.query_rows)
         return sigma.float() * inside
@@ -225,7 +211,7 @@ class Renderer(nn.Module):
         cylinder. With ``keep`` (``[n, K]`` bool) only those reach the field (σ, rgb = 0)."""
         n, k = s.shape
         pts = o[:, None, :] + s[..., None] * d[:, None, :]
-        inside = self.cylinder.inside(pts, self.clip_scale, tol=_INSIDE_TOL)
+        inside = self.cylinder.inside(pts, self.clip_scale, tol=INSIDE_TOL)
         if keep is None:
             self.field_inputs += n * k
             sigma, rgb = query_field(field, pts.reshape(n * k, 3),
@@ -348,6 +334,18 @@ class Renderer(nn.Module):
         return [{key: missed[key].expand(n, *value.shape[1:]).index_put((idx,), value)
                  for key, value in level.items()} for level in sub]
 
+    def final_level(self, field: Field, o: Tensor, d: Tensor, t: Tensor, bg: Tensor
+                    ) -> dict[str, Tensor]:
+        """The final level's ``rgb [N, 3]``, ``opacity [N]``, ``depth [N]`` without jitter
+        (images, curve points; :meth:`forward`'s arguments): in compiled loops where
+        :func:`~eventrecon.render.compiled_render.supported` (the same values to float32
+        rounding), else by :meth:`forward`."""
+        out = render_final(self, field, o, d, t, bg)
+        if out is None:
+            level = self.forward(field, o, d, t, bg, perturb=False)[-1]
+            out = {key: level[key] for key in ("rgb", "opacity", "depth")}
+        return out
+
     def image_autocast(self, device: torch.device) -> contextlib.AbstractContextManager:
         """:func:`~eventrecon.precision.image_autocast` of :attr:`image_dtype` on ``device``."""
         return image_autocast(self.image_dtype, device)
@@ -391,7 +389,7 @@ class Renderer(nn.Module):
         with self.image_autocast(device):
             for i in range(0, h * w, chunk):
                 j = slice(i, i + chunk)
-                level = self.forward(field, o[j], d[j], tt[j], bg[j], perturb=False)[-1]
+                level = self.final_level(field, o[j], d[j], tt[j], bg[j])
                 for key in parts:
                     parts[key].append(level[key].float())
         return {"rgb": torch.cat(parts["rgb"]).reshape(h, w, 3),
