@@ -15,6 +15,7 @@ from torch import Tensor
 
 from eventrecon.fields.base import Field
 from eventrecon.render import compiled_render
+from eventrecon.render.compiled import numba_threads, parts
 from eventrecon.render.samplers import pdf_bins, sample_pdf, stratified
 from eventrecon.render.volume import Renderer, composite
 
@@ -145,3 +146,20 @@ def test_no_ray_meets_the_cylinder() -> None:
         out = compiled_render.render_final(r, TwoBlobs(), o, d, t, bg)
     assert r.field_inputs == 0
     assert torch.equal(out["rgb"], bg) and torch.equal(out["depth"], torch.zeros(10))
+
+
+@pytest.mark.skipif(numba_threads() < 2, reason="numba has one thread here")
+def test_rays_split_between_threads_give_the_same_bits() -> None:
+    r = _renderer("grid")
+    o, d, t, bg = _rays(4096, 5)                  # ~3000 hits: two ranges of rays
+    threads = torch.get_num_threads()
+    outs = []
+    try:
+        for k in (1, 2):
+            torch.set_num_threads(k)
+            assert parts(3000, compiled_render._GRAIN) == k
+            with torch.no_grad():
+                outs.append(compiled_render.render_final(r, TwoBlobs(), o, d, t, bg))
+    finally:
+        torch.set_num_threads(threads)
+    assert all(torch.equal(outs[0][key], outs[1][key]) for key in outs[0])

@@ -44,7 +44,7 @@ import torch
 from torch import Tensor, nn
 
 from eventrecon.render.clipping import INSIDE_TOL
-from eventrecon.render.compiled import AVAILABLE, compiled
+from eventrecon.render.compiled import AVAILABLE, compiled, compiled_parallel, parts, prange
 from eventrecon.render.queries import query_field
 from eventrecon.render.samplers import TAU_MAX, stratified
 
@@ -156,49 +156,82 @@ def _fine(s: Any, far: Any, slot: Any, sig: Any, u: Any, eps: Any, stop: Any, w:
 
 
 @compiled
-def _composite(s_c: Any, slot_c: Any, sig_c: Any, rgb_c: Any, s_f: Any, slot_f: Any,
-               sig_f: Any, rgb_f: Any, far: Any, bg: Any, rgb: Any, opacity: Any,
-               depth: Any) -> None:
+def _composite(s_c: Any, slot_c: Any, s_f: Any, slot_f: Any, sig: Any, col: Any, far: Any,
+               bg: Any, ends: Any, end_rows: Any, merged: Any, rows: Any, rgb: Any,
+               opacity: Any, depth: Any) -> None:
     """The union of the coarse ``s_c [n, K_c]`` and fine ``s_f [n, K_f]`` samples (each
     sorted) in order, composited over ``bg [n, 3]``: ``rgb [n, 3]`` (clamped to [0, 1]),
     ``opacity [n]``, ``depth [n]`` (:func:`eventrecon.render.volume.composite`). A sample's
-    values are row ``slot`` of ``sig, rgb`` (density 0 where ``slot`` is −1)."""
+    values are row ``slot`` of ``sig [M]``, ``col [M, 3]`` (density 0 where ``slot`` is
+    −1). Scratch: ``ends, end_rows [K_c + K_f + 2]`` (each list with an infinite last
+    sample, so that the merge needs no branch) and ``merged, rows [K_c + K_f]``."""
     kc, kf, zero, one = s_c.shape[1], s_f.shape[1], np.float32(0), np.float32(1)
+    k = kc + kf
     for r in range(s_c.shape[0]):
-        i, j = 0, 0
+        for q in range(kc):
+            ends[q], end_rows[q] = s_c[r, q], slot_c[r, q]
+        for q in range(kf):
+            ends[kc + 1 + q], end_rows[kc + 1 + q] = s_f[r, q], slot_f[r, q]
+        ends[kc], ends[k + 1] = np.inf, np.inf
+        i, j = 0, kc + 1
+        for q in range(k):                      # the merge (ties: the coarse sample first)
+            coarse = ends[i] <= ends[j]
+            merged[q] = ends[i] if coarse else ends[j]
+            rows[q] = end_rows[i] if coarse else end_rows[j]
+            i += coarse
+            j += 1 - coarse
         excl, trans, c0, c1, c2, dep = 0.0, 1.0, 0.0, 0.0, 0.0, 0.0     # float64 sums
-        prev_s, prev_sig, p0, p1, p2 = zero, zero, zero, zero, zero
-        for n in range(kc + kf + 1):
-            if n < kc + kf:
-                if j >= kf or (i < kc and s_c[r, i] <= s_f[r, j]):
-                    cur_s, row, sig, col = s_c[r, i], slot_c[r, i], sig_c, rgb_c
-                    i += 1
-                else:
-                    cur_s, row, sig, col = s_f[r, j], slot_f[r, j], sig_f, rgb_f
-                    j += 1
-            else:
-                cur_s, row, sig, col = far[r], -1, sig_c, rgb_c
-            tau = min(prev_sig * max(cur_s - prev_s, zero), _TAU_MAX)
-            if tau > zero:                      # the previous sample's step ends here
+        for q in range(k):
+            row = rows[q]
+            if row < 0:
+                continue
+            end = merged[q + 1] if q + 1 < k else far[r]
+            tau = min(max(sig[row], zero) * max(end - merged[q], zero), _TAU_MAX)
+            if tau > zero:                      # w = T_q − T_{q+1}, both in float64
                 excl += tau
                 after = np.exp(-excl)
                 wt = np.float32(trans - after)
                 trans = after
-                c0 += wt * p0
-                c1 += wt * p1
-                c2 += wt * p2
-                dep += wt * prev_s
-            if row >= 0:
-                prev_sig, p0, p1, p2 = max(sig[row], zero), col[row, 0], col[row, 1], col[row, 2]
-            else:
-                prev_sig, p0, p1, p2 = zero, zero, zero, zero
-            prev_s = cur_s
+                c0 += wt * col[row, 0]
+                c1 += wt * col[row, 1]
+                c2 += wt * col[row, 2]
+                dep += wt * merged[q]
         t_last = np.float32(trans)
         rgb[r, 0] = min(max(np.float32(c0) + t_last * bg[r, 0], zero), one)
         rgb[r, 1] = min(max(np.float32(c1) + t_last * bg[r, 1], zero), one)
         rgb[r, 2] = min(max(np.float32(c2) + t_last * bg[r, 2], zero), one)
         opacity[r] = one - t_last
         depth[r] = np.float32(dep) + t_last * far[r]
+
+
+@compiled_parallel
+def _fine_parts(s: Any, far: Any, slot: Any, sig: Any, u: Any, eps: Any, stop: Any, w: Any,
+                cdf: Any, s_f: Any, stop_s: Any) -> None:
+    """:func:`_fine` on ``P`` equal ranges of the rays at once (``w [P, K]``,
+    ``cdf [P, K − 1]``: each range's scratch)."""
+    n, p = s.shape[0], w.shape[0]
+    for k in prange(p):
+        a, b = n * k // p, n * (k + 1) // p
+        _fine(s[a:b], far[a:b], slot[a:b], sig, u, eps, stop, w[k], cdf[k], s_f[a:b],
+              stop_s[a:b])
+
+
+@compiled_parallel
+def _composite_parts(s_c: Any, slot_c: Any, s_f: Any, slot_f: Any, sig: Any, col: Any,
+                     far: Any, bg: Any, ends: Any, end_rows: Any, merged: Any, rows: Any,
+                     rgb: Any, opacity: Any, depth: Any) -> None:
+    """:func:`_composite` on ``P`` equal ranges of the rays at once (``ends, end_rows
+    [P, K_c + K_f + 2]``, ``merged, rows [P, K_c + K_f]``: each range's scratch)."""
+    n, p = s_c.shape[0], merged.shape[0]
+    for k in prange(p):
+        a, b = n * k // p, n * (k + 1) // p
+        _composite(s_c[a:b], slot_c[a:b], s_f[a:b], slot_f[a:b], sig, col, far[a:b],
+                   bg[a:b], ends[k], end_rows[k], merged[k], rows[k], rgb[a:b],
+                   opacity[a:b], depth[a:b])
+
+
+#: Rays per range, at least, when the loops are split between threads.
+_GRAIN = 1024
 
 
 def supported(field: Field, o: Tensor, d: Tensor, t: Tensor, bg: Tensor) -> bool:
@@ -278,10 +311,11 @@ def _render_hit(renderer: Renderer, field: Field, o: Tensor, d: Tensor, t: Tenso
     slot_f = np.full((n, r.n_fine), -1, np.int64)
     if r.n_fine:
         stop_s = np.empty(n, np.float32)
-        _fine(sc, far_np, slot_c, rows.values()[0], torch.linspace(0.0, 1.0, r.n_fine).numpy(),
-              np.array([1e-6], np.float32),
-              np.array([r.stop_transmittance if skipping else -1.0], np.float32),
-              np.empty(k, np.float32), np.empty(k - 1, np.float32), s_f, stop_s)
+        p = parts(n, _GRAIN)
+        _fine_parts(sc, far_np, slot_c, rows.values()[0],
+                    torch.linspace(0.0, 1.0, r.n_fine).numpy(), np.array([1e-6], np.float32),
+                    np.array([r.stop_transmittance if skipping else -1.0], np.float32),
+                    np.empty((p, k), np.float32), np.empty((p, k - 1), np.float32), s_f, stop_s)
         if skipping:
             keep_f = r._occupied(o, d, t, torch.from_numpy(s_f)).numpy()
         else:
@@ -289,9 +323,11 @@ def _render_hit(renderer: Renderer, field: Field, o: Tensor, d: Tensor, t: Tenso
         rows.ask(s_f, (0, r.n_fine), keep_f, stop_s, slot_f, not skipping)
     sig_all, rgb_all = rows.values()
     out = {"rgb": torch.empty(n, 3), "opacity": torch.empty(n), "depth": torch.empty(n)}
-    _composite(sc, slot_c, sig_all, rgb_all, s_f, slot_f, sig_all, rgb_all, far_np,
-               bg.contiguous().numpy(), out["rgb"].numpy(), out["opacity"].numpy(),
-               out["depth"].numpy())
+    p, union = parts(n, _GRAIN), k + r.n_fine
+    _composite_parts(sc, slot_c, s_f, slot_f, sig_all, rgb_all, far_np, bg.contiguous().numpy(),
+                     np.empty((p, union + 2), np.float32), np.empty((p, union + 2), np.int64),
+                     np.empty((p, union), np.float32), np.empty((p, union), np.int64),
+                     out["rgb"].numpy(), out["opacity"].numpy(), out["depth"].numpy())
     return out
 
 

@@ -22,14 +22,12 @@ beside the module; a cache moved elsewhere with ``NUMBA_CACHE_DIR`` is not watch
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import itertools
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
-import numpy as np
+from eventrecon.render.compiled import GRAIN, numba_threads, parts
 
 try:
     import numba
@@ -79,8 +77,6 @@ if AVAILABLE:
 
 #: The options of every compiled function here (module docstring).
 _OPTIONS = {"cache": True, "error_model": "numpy", "nogil": True}
-#: Items per range, at least, when :func:`parts` splits a loop between threads.
-GRAIN = 4096
 
 
 def njit(fn: Callable, inline: bool = False, nrt: bool = True) -> Callable:
@@ -108,51 +104,3 @@ def njit_parallel(fn: Callable) -> Callable:
     if numba is None:                            # pragma: no cover
         return fn
     return numba.njit(**_OPTIONS, parallel=True)(fn)
-
-
-def numba_threads() -> int:
-    """numba's thread count (``NUMBA_NUM_THREADS``: the CPU's cores unless set); 1
-    without numba."""
-    return 1 if numba is None else int(numba.config.NUMBA_NUM_THREADS)
-
-
-@functools.cache
-def _thread_safe_layer() -> bool:
-    """Whether numba's threading layer is OpenMP or TBB (launched once, on a trivial
-    loop, to find out). Its ``workqueue`` fallback aborts the process when two Python
-    threads enter parallel code at once, so then nothing is split."""
-    if numba is None:                            # pragma: no cover
-        return False
-    try:
-        _probe(np.zeros(2))
-        return numba.threading_layer() in ("omp", "tbb")
-    except (ValueError, RuntimeError):           # pragma: no cover - no layer loads
-        return False
-
-
-def parts(n: int, grain: int = GRAIN) -> int:
-    """How many ranges to split ``n`` independent items into for an :func:`njit_parallel`
-    loop: ``min(torch threads, numba threads, n // grain)``, at least 1 (1: call the
-    serial kernel instead; also where numba's threading layer is not thread-safe). When
-    more than 1, sets numba's thread count of the calling thread to it.
-
-    >>> parts(10)
-    1
-    """
-    if numba is None:                            # pragma: no cover
-        return 1
-    import torch
-
-    k = max(1, min(torch.get_num_threads(), numba_threads(), n // grain))
-    if k > 1 and not _thread_safe_layer():
-        return 1
-    if k > 1:
-        numba.set_num_threads(k)
-    return k
-
-
-@njit_parallel
-def _probe(a: Any) -> None:
-    """A trivial parallel loop (:func:`_thread_safe_layer`)."""
-    for i in prange(a.shape[0]):
-        a[i] += 1.0
