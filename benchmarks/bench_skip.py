@@ -110,7 +110,8 @@ def ray_samples(renderer: Renderer, field: Field, batches: Sequence[dict],
         return query(f, o, d, t, s, keep)
 
     inputs, opacity, fine_in = [], [], []
-    n_fine = renderer.n_fine
+    n_fine, compiled = renderer.n_fine, renderer.compiled
+    renderer.compiled = False    # PyTorch's passes, whose _query is watched (the same samples)
     try:
         for fine in (0, n_fine):
             renderer.n_fine, renderer.field_inputs, rays, opaque = fine, 0, 0, 0
@@ -130,7 +131,7 @@ def ray_samples(renderer: Renderer, field: Field, batches: Sequence[dict],
                     fine_in.append(counts[-1].float().cpu())
             inputs.append(renderer.field_inputs / max(rays, 1))
     finally:
-        renderer.n_fine = n_fine
+        renderer.n_fine, renderer.compiled = n_fine, compiled
     row = {"coarse": inputs[0], "fine": inputs[1] - inputs[0], "opaque": opaque / max(rays, 1)}
     op = torch.cat(opacity).cpu() if opacity else torch.zeros(0)
     kf = torch.cat(fine_in) if fine_in else torch.zeros(0)

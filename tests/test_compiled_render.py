@@ -1,9 +1,10 @@
-"""The compiled final level (``eventrecon.render.compiled_render``) against PyTorch's path.
+"""The compiled renderer (``eventrecon.render.compiled_render``) against PyTorch's passes.
 
-PyTorch's :meth:`Renderer.forward` is the reference: the compiled loops must ask the field
-on the same samples (the same count, so the same skips and stops) and give the same
-colour, opacity and depth to float32 rounding, with and without the occupancy grid, with
-misses, an annealed radius and without a fine level.
+``Renderer(compiled=False)`` is the reference: the compiled loops must ask the field on
+the same samples (the same count, so the same skips and stops), draw the same random
+samples, and give both levels' colour, opacity, depth and weights, and the gradients of a
+loss on them, to float32 rounding, with and without the occupancy grid, with misses, an
+annealed radius, several copies of a ray and without a fine level.
 """
 
 from __future__ import annotations
@@ -11,10 +12,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from eventrecon.fields.base import Field
-from eventrecon.render import compiled_render
+from eventrecon.render import compiled_render, composite_rows
 from eventrecon.render.compiled import numba_threads, parts
 from eventrecon.render.samplers import pdf_bins, sample_pdf, stratified
 from eventrecon.render.volume import Renderer, composite
@@ -22,23 +23,35 @@ from eventrecon.render.volume import Renderer, composite
 pytestmark = pytest.mark.skipif(not compiled_render.AVAILABLE, reason="needs numba")
 
 CYL = {"radius": 0.5, "y_min": -0.75, "y_max": 0.25}
+#: Tolerances. The fine samples' distances agree to float32 rounding, except where a
+#: histogram bin holds almost no weight: there the inverse CDF divides by a difference of
+#: nearly equal CDF values, whose last bit depends on the order of a sum (up to 2e-5 of
+#: a distance here). A sample's weight moves with its step, so the weights get the most.
+TOL = {"rgb": 5e-6, "opacity": 5e-6, "depth": 2e-5, "weights": 5e-5}
+KEYS = tuple(TOL)
 
 
 class TwoBlobs(Field):
     """A moving soft blob and a static dense one (rays through it stop), with a colour
-    that varies in space and time; zero density far from both."""
+    that varies in space and time; zero density far from both. Its scales and colour
+    offset are parameters, so gradients can be compared."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.scale = nn.Parameter(torch.tensor([30.0, 40000.0]))
+        self.offset = nn.Parameter(torch.tensor([0.1, -0.2, 0.3]))
 
     def forward(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
         moving = torch.cat([0.3 * (2 * t - 1), torch.full_like(t, -0.3), torch.zeros_like(t)], -1)
         dense = torch.tensor([0.0, -0.1, 0.2])
-        sigma = (30.0 * torch.relu(0.04 - (xyz - moving).square().sum(-1))
-                 + 40000.0 * torch.relu(0.01 - (xyz - dense).square().sum(-1)))
-        return sigma, torch.sigmoid(4.0 * xyz + t)
+        sigma = (self.scale[0] * torch.relu(0.04 - (xyz - moving).square().sum(-1))
+                 + self.scale[1] * torch.relu(0.01 - (xyz - dense).square().sum(-1)))
+        return sigma, torch.sigmoid(4.0 * xyz + t + self.offset)
 
 
 def _rays(n: int, seed: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Rays from a ring at radius 2.5 towards the cylinder (a quarter aimed to miss it),
-    random times and backgrounds."""
+    """Rays from a ring at radius 2.5 towards the cylinder (the first quarter aimed to
+    miss it), random times and backgrounds."""
     g = torch.Generator().manual_seed(seed)
     ang = torch.rand(n, generator=g) * 6.2832
     o = torch.stack([2.5 * ang.cos(), torch.full((n,), -0.25), 2.5 * ang.sin()], -1)
@@ -50,8 +63,15 @@ def _rays(n: int, seed: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
             torch.rand(n, 3, generator=g))
 
 
-def _renderer(skip: str, n_fine: int = 32, **kw) -> Renderer:
-    r = Renderer(n_coarse=32, n_fine=n_fine, skip=skip, **CYL, **kw)
+def _same_samples(a: Tensor, b: Tensor) -> None:
+    """The two paths' sample distances: all but 0.1 % within 1e-5 and none more than
+    1e-3 apart (the fine samples of nearly empty histogram bins, ``TOL``)."""
+    diff = (a - b).abs()
+    assert float((diff > 1e-5).float().mean()) <= 1e-3 and float(diff.max()) <= 1e-3
+
+
+def _renderer(skip: str, n_fine: int = 32, compiled: bool = True, **kw) -> Renderer:
+    r = Renderer(n_coarse=32, n_fine=n_fine, skip=skip, compiled=compiled, **CYL, **kw)
     if skip == "grid":
         for step in range(3):
             r.occupancy.update(lambda x, t: r.masked_density(TwoBlobs(), x, t),
@@ -59,43 +79,69 @@ def _renderer(skip: str, n_fine: int = 32, **kw) -> Renderer:
     return r
 
 
-def _both(r: Renderer, o: Tensor, d: Tensor, t: Tensor, bg: Tensor
-          ) -> tuple[dict[str, Tensor], int, dict[str, Tensor], int]:
-    """The final level by PyTorch's path and by the compiled one, and the samples each
-    sent to the field."""
+def _render(r: Renderer, rays: tuple[Tensor, ...], grad: bool, perturb: bool = False,
+            copies: int = 1) -> tuple[list[dict[str, Tensor]], int, list[Tensor]]:
+    """Both levels, the samples sent to the field and (with ``grad``) the gradients of
+    a loss on every output with respect to the field's parameters."""
     field = TwoBlobs()
-    with torch.no_grad():
-        r.field_inputs = 0
-        ref = r.forward(field, o, d, t, bg)[-1]
-        n_ref, r.field_inputs = r.field_inputs, 0
-        out = compiled_render.render_final(r, field, o, d, t, bg)
-    assert out is not None
-    return ref, n_ref, out, r.field_inputs
+    r.field_inputs = 0
+    gen = torch.Generator().manual_seed(7) if perturb else None
+    with torch.set_grad_enabled(grad):
+        levels = r(field, *rays, perturb=perturb, gen=gen, copies=copies)
+        grads = []
+        if grad:
+            w = torch.linspace(0.5, 1.5, rays[0].shape[0])
+            loss = sum((lv["rgb"].sum(-1) * w).sum() + (lv["opacity"] * w).sum()
+                       + 0.1 * lv["depth"].sum() for lv in levels)
+            grads = list(torch.autograd.grad(loss, list(field.parameters())))
+    return levels, r.field_inputs, grads
 
 
-@pytest.mark.parametrize(("skip", "n_fine", "clip_scale"),
-                         [("none", 32, 1.0), ("grid", 32, 1.0), ("grid", 0, 1.0),
-                          ("none", 0, 1.0), ("grid", 32, 0.6), ("none", 32, 0.6)])
-def test_same_samples_and_the_same_image_as_pytorchs_path(skip: str, n_fine: int,
-                                                          clip_scale: float) -> None:
-    r = _renderer(skip, n_fine, clip_scale=clip_scale)
-    o, d, t, bg = _rays(600, 0)
-    ref, n_ref, out, n_out = _both(r, o, d, t, bg)
-    assert n_out == n_ref
-    assert torch.allclose(out["rgb"], ref["rgb"], atol=2e-6, rtol=0)
-    assert torch.allclose(out["opacity"], ref["opacity"], atol=2e-6, rtol=0)
-    assert torch.allclose(out["depth"], ref["depth"], atol=1e-5, rtol=0)
-    missed = slice(0, 150)
-    assert torch.equal(out["rgb"][missed], bg[missed])
-    assert torch.equal(out["opacity"][missed], torch.zeros(150))
+CASES = [("none", 32, 1.0), ("grid", 32, 1.0), ("grid", 0, 1.0), ("none", 0, 1.0),
+         ("grid", 32, 0.6), ("none", 32, 0.6)]
+
+
+@pytest.mark.parametrize("grad", [False, True], ids=["images", "training"])
+@pytest.mark.parametrize(("skip", "n_fine", "clip_scale"), CASES)
+def test_the_same_samples_levels_and_gradients_as_pytorchs_passes(
+        skip: str, n_fine: int, clip_scale: float, grad: bool) -> None:
+    rays = _rays(600, 0)
+    ref, n_ref, g_ref = _render(_renderer(skip, n_fine, False, clip_scale=clip_scale), rays,
+                                grad, perturb=grad)
+    out, n_out, g_out = _render(_renderer(skip, n_fine, True, clip_scale=clip_scale), rays,
+                                grad, perturb=grad)
+    assert n_out == n_ref and len(out) == len(ref)
+    for a, b in zip(out, ref):
+        _same_samples(a["s"], b["s"])
+        for key in KEYS:
+            assert a[key].shape == b[key].shape
+            assert torch.allclose(a[key], b[key], atol=TOL[key], rtol=0), key
+    for a, b in zip(g_out, g_ref):
+        assert torch.allclose(a, b, rtol=2e-4, atol=1e-6 * float(b.abs().max())), (a, b)
+    fine = out[-1]
+    assert torch.equal(fine["rgb"][:150], rays[3][:150])          # the misses
+    assert torch.equal(fine["opacity"][:150], torch.zeros(150))
     # the scene is not trivial: rays through the dense blob are opaque, others clear
-    assert out["opacity"].max() > 0.999 and (out["opacity"][150:] < 1e-3).any()
+    assert fine["opacity"].max() > 0.999 and (fine["opacity"][150:] < 1e-3).any()
+
+
+def test_copies_share_their_coarse_samples_and_draw_as_pytorch_does() -> None:
+    o, d, t, bg = _rays(200, 3)
+    rays = (o.repeat(3, 1), d.repeat(3, 1), torch.rand(600, 1), bg.repeat(3, 1))
+    ref, n_ref, g_ref = _render(_renderer("grid", compiled=False), rays, True, True, copies=3)
+    out, n_out, g_out = _render(_renderer("grid"), rays, True, True, copies=3)
+    assert n_out == n_ref
+    assert torch.equal(out[0]["s"], ref[0]["s"])
+    _same_samples(out[1]["s"], ref[1]["s"])
+    assert all(torch.allclose(a, b, rtol=2e-4, atol=1e-6 * float(b.abs().max()))
+               for a, b in zip(g_out, g_ref))
 
 
 def test_the_grid_and_the_stop_skip_samples_here_too() -> None:
-    o, d, t, bg = _rays(600, 1)
-    _, dense, _, _ = _both(_renderer("none"), o, d, t, bg)
-    _, n_ref, _, n_out = _both(_renderer("grid"), o, d, t, bg)
+    rays = _rays(600, 1)
+    _, dense, _ = _render(_renderer("none"), rays, False)
+    _, n_ref, _ = _render(_renderer("grid", compiled=False), rays, False)
+    _, n_out, _ = _render(_renderer("grid"), rays, False)
     assert n_out == n_ref < dense / 3
 
 
@@ -107,15 +153,20 @@ def test_the_fine_samples_are_sample_pdfs_quantiles() -> None:
     s = stratified(near, far, k, perturb=False)
     sigma = torch.rand(n, k, generator=g) * 8 * (torch.rand(n, k, generator=g) > 0.4)
     sigma[:20] = 0.0                              # empty rays: the eps makes them uniform
-    slot = np.arange(n * k, dtype=np.int64).reshape(n, k)
-    s_f, stop_s = np.empty((n, n_fine), np.float32), np.empty(n, np.float32)
-    compiled_render._fine(s.numpy(), far.numpy(), slot, sigma.reshape(-1).numpy(),
-                          torch.linspace(0, 1, n_fine).numpy(), np.array([1e-6], np.float32),
-                          np.array([1e-4], np.float32), np.empty(k, np.float32),
-                          np.empty(k - 1, np.float32), s_f, stop_s)
     weights = composite(sigma, torch.zeros(n, k, 3), s, far, torch.zeros(n, 3))["weights"]
-    ref = sample_pdf(*pdf_bins(s, weights), n_fine, deterministic=True)
-    assert torch.allclose(torch.from_numpy(s_f), ref, atol=1e-5, rtol=0)
+    for u in (torch.linspace(0, 1, n_fine).expand(n, n_fine).contiguous(),
+              torch.rand(n, n_fine, generator=g).sort(-1).values):
+        s_f, stop_s = torch.empty(n, n_fine), np.empty(n, np.float32)
+        compiled_render._fine(s.numpy(), far.numpy(), weights.numpy(), u.numpy(),
+                              np.array([1e-6], np.float32), np.array([1e-4], np.float32),
+                              np.empty(k - 1, np.float32), s_f.numpy(), stop_s)
+        # sample_pdf's own quantiles or draws: u from the same generator state
+        bins, w = pdf_bins(s, weights)
+        if u[0, 0] == 0 and u[0, -1] == 1:
+            ref = sample_pdf(bins, w, n_fine, deterministic=True)
+        else:
+            ref = _sample_pdf_at(bins, w, u)
+        assert torch.allclose(s_f, ref, atol=1e-5, rtol=0)
     # the stop: the end of the first step after which 1 − Σw < 1e-4, else far
     trans = 1.0 - weights.cumsum(-1)
     ends = torch.cat([s[:, 1:], far[:, None]], -1)
@@ -124,42 +175,99 @@ def test_the_fine_samples_are_sample_pdfs_quantiles() -> None:
     assert torch.equal(torch.from_numpy(stop_s), expect)
 
 
-def test_gradients_or_a_non_float32_call_take_pytorchs_path() -> None:
-    r = _renderer("grid")
-    o, d, t, bg = _rays(64, 2)
-    field = TwoBlobs()
-    assert compiled_render.render_final(r, field, o, d, t, bg) is None   # grad mode on
-    with torch.no_grad():
-        assert compiled_render.render_final(r, field, o.double(), d.double(), t.double(),
-                                            bg.double()) is None
-        a = r.final_level(field, o, d, t, bg)
-        b = r.forward(field, o, d, t, bg)[-1]
-    assert torch.allclose(a["rgb"], b["rgb"], atol=2e-6, rtol=0)
+def _sample_pdf_at(bins: Tensor, w: Tensor, u: Tensor) -> Tensor:
+    """``sample_pdf``'s inverse CDF at given sorted quantiles ``u [n, m]`` (its random
+    branch draws them itself), in its own operations."""
+    pdf = w.clamp(min=0) + 1e-6
+    pdf = pdf / pdf.sum(-1, keepdim=True)
+    cdf = torch.cat([torch.zeros_like(pdf[:, :1]), pdf.cumsum(-1)], -1)
+    cdf[:, -1] = 1.0
+    hi = torch.searchsorted(cdf.contiguous(), u, right=True).clamp(1, w.shape[1])
+    lo = hi - 1
+    c0, c1, b0, b1 = cdf.gather(1, lo), cdf.gather(1, hi), bins.gather(1, lo), bins.gather(1, hi)
+    den = c1 - c0
+    frac = ((u - c0) / torch.where(den > 0, den, torch.ones_like(den))).clamp(0, 1)
+    return b0 + frac * (b1 - b0)
 
 
-def test_no_ray_meets_the_cylinder() -> None:
-    r = _renderer("grid")
-    o, d, t, bg = _rays(40, 4)
-    o, d, t, bg = o[:10], d[:10], t[:10], bg[:10]        # all aimed above it
-    with torch.no_grad():
-        r.field_inputs = 0
-        out = compiled_render.render_final(r, TwoBlobs(), o, d, t, bg)
-    assert r.field_inputs == 0
-    assert torch.equal(out["rgb"], bg) and torch.equal(out["depth"], torch.zeros(10))
+def test_composite_rows_gradient_against_finite_differences() -> None:
+    g = torch.Generator().manual_seed(5)
+    n, k = 6, 9
+    s = torch.sort(torch.rand(n, k, generator=g), -1).values + 1.0
+    far = s[:, -1] + 0.3
+    slot = torch.arange(n * k).reshape(n, k)
+    slot[0, 3] = slot[2, 0] = -1                  # samples without a row
+    bg = torch.rand(n, 3, generator=g)
+    mix = torch.rand(n * 5, generator=g, dtype=torch.float64)
+
+    def loss(sig: Tensor, col: Tensor) -> Tensor:
+        out = composite_rows.composite_rows(sig, col, s, slot, far, bg)
+        flat = torch.cat([out["rgb"].reshape(-1), out["opacity"], 0.3 * out["depth"]])
+        return (flat.double() * mix).sum()
+
+    sig = (torch.rand(n * k, generator=g, dtype=torch.float64) * 4).requires_grad_()
+    col = torch.rand(n * k, 3, generator=g, dtype=torch.float64).requires_grad_()
+    g_sig, g_col = torch.autograd.grad(loss(sig, col), [sig, col])
+    for i in torch.randperm(n * k, generator=g)[:12].tolist():
+        for which, grad in ((0, g_sig.reshape(-1)), (1, g_col.reshape(-1))):
+            x = (sig, col)[which].detach().reshape(-1)
+            plus, minus = x.clone(), x.clone()
+            plus[i] += 1e-2
+            minus[i] -= 1e-2
+            args = [sig.detach(), col.detach()]
+            args[which] = plus.reshape(args[which].shape)
+            f_plus = loss(*args)
+            args[which] = minus.reshape(args[which].shape)
+            f_minus = loss(*args)
+            assert abs(float(f_plus - f_minus) / 2e-2 - float(grad[i])) < 2e-3
 
 
 @pytest.mark.skipif(numba_threads() < 2, reason="numba has one thread here")
 def test_rays_split_between_threads_give_the_same_bits() -> None:
-    r = _renderer("grid")
-    o, d, t, bg = _rays(4096, 5)                  # ~3000 hits: two ranges of rays
+    rays = _rays(4096, 5)                        # ~3000 hits: two ranges of rays
     threads = torch.get_num_threads()
     outs = []
     try:
         for k in (1, 2):
             torch.set_num_threads(k)
-            assert parts(3000, compiled_render._GRAIN) == k
-            with torch.no_grad():
-                outs.append(compiled_render.render_final(r, TwoBlobs(), o, d, t, bg))
+            assert parts(3000, composite_rows.GRAIN) == k
+            outs.append(_render(_renderer("grid"), rays, True, perturb=True))
     finally:
         torch.set_num_threads(threads)
-    assert all(torch.equal(outs[0][key], outs[1][key]) for key in outs[0])
+    (a, _, ga), (b, _, gb) = outs
+    assert all(torch.equal(x[key], y[key]) for x, y in zip(a, b) for key in KEYS)
+    assert all(torch.equal(x, y) for x, y in zip(ga, gb))
+
+
+def test_no_ray_meets_the_cylinder() -> None:
+    o, d, t, bg = (x[:10] for x in _rays(40, 4))  # all aimed above it
+    levels, n, _ = _render(_renderer("grid"), (o, d, t, bg), False)
+    assert n == 0
+    assert torch.equal(levels[-1]["rgb"], bg) and torch.equal(levels[-1]["depth"], torch.zeros(10))
+
+
+class NaNPatch(TwoBlobs):
+    """TwoBlobs with a NaN density in one corner of the cylinder and a NaN colour in
+    another, where the density is zero (weight 0: ``0 · NaN`` is still NaN)."""
+
+    def forward(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
+        sigma, rgb = super().forward(xyz, t)
+        sigma = torch.where(xyz[:, 0] > 0.3, torch.nan, sigma)
+        rgb = torch.where((xyz[:, 0] < -0.3)[:, None], torch.nan, rgb)
+        return sigma, rgb
+
+
+@pytest.mark.parametrize("skip", ["none", "grid"])
+def test_a_non_finite_field_makes_the_same_rays_nan(skip: str) -> None:
+    """A diverging run must see its NaN: the compiled compositing keeps it as PyTorch's
+    clamps and sums do (``tests/test_stability.py`` stops such a run by it)."""
+    rays = _rays(600, 6)
+    outs = []
+    for compiled in (False, True):
+        r = _renderer(skip, compiled=compiled)
+        with torch.no_grad():
+            outs.append(r(NaNPatch(), *rays))
+    for a, b in zip(*outs):
+        for key in ("rgb", "opacity", "depth"):
+            assert torch.equal(a[key].isnan(), b[key].isnan()), key
+    assert outs[1][-1]["rgb"].isnan().any(-1).float().mean() > 0.1

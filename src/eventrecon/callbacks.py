@@ -172,9 +172,9 @@ class HeldOutMonitor(L.Callback):
         bg = self.bg[v].reshape(-1, 3)[self.pix]
         tt = torch.full((uv.shape[0], 1), t)
         with renderer.image_autocast(device):
-            level = renderer.final_level(field, o.to(device), d.to(device), tt.to(device),
-                                         bg.to(device))
-        return level["rgb"].float().clamp(0, 1).cpu().numpy()
+            levels = renderer(field, o.to(device), d.to(device), tt.to(device),
+                              bg.to(device), perturb=False)
+        return levels[-1]["rgb"].float().clamp(0, 1).cpu().numpy()
 
     def _append_curve(self, step: int, row: dict, kind: str, trainer: L.Trainer) -> None:
         if trainer.is_global_zero:

@@ -38,8 +38,8 @@ from eventrecon.colour import GREY_LINEAR
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.precision import image_autocast
+from eventrecon.render import compiled_render
 from eventrecon.render.clipping import INSIDE_TOL, NO_CLIPPING, Cylinder
-from eventrecon.render.compiled_render import render_final
 from eventrecon.render.occupancy_refined import build_grid
 from eventrecon.render.queries import query_density, query_field
 from eventrecon.render.samplers import TAU_MAX, pdf_bins, sample_pdf, step_sizes, stratified
@@ -150,6 +150,9 @@ class Renderer(nn.Module):
             (:func:`~eventrecon.render.queries.padded_rows`; 0: exact; identical results).
         query_rows: most samples per field call without autograd (images, grid updates;
             0: no limit; the same up to rounding; :mod:`eventrecon.render.queries`).
+        compiled: on a CPU, both levels in compiled loops
+            (:mod:`~eventrecon.render.compiled_render`: the same samples, values to float32
+            rounding); ``False``: PyTorch's passes (the reference).
     """
 
     def __init__(self, n_coarse: int = 64, n_fine: int = 128, radius: float = 0.5,
@@ -157,7 +160,7 @@ class Renderer(nn.Module):
                  chunk: int = 8192, clipping: bool = True, skip: str = "none",
                  occupancy: dict[str, Any] | None = None, march_chunks: int = 4,
                  stop_transmittance: float = 1e-4, query_buckets: int = 8,
-                 query_rows: int = 16384) -> None:
+                 query_rows: int = 16384, compiled: bool = True) -> None:
         super().__init__()
         if n_fine < 0:
             raise InputError("renderer", "n_fine", "an integer >= 0", n_fine)
@@ -179,6 +182,7 @@ class Renderer(nn.Module):
         self.march_chunks = max(1, int(march_chunks))
         self.stop_transmittance = float(stop_transmittance)
         self.query_buckets, self.query_rows = int(query_buckets), int(query_rows)
+        self.compiled = bool(compiled)
         self.occupancy = (build_grid(*self.cylinder.box(), **dict(occupancy or {}))
                           if skip == "grid" else None)
         #: the run's mixed dtype for renders without gradients (set by the builder)
@@ -264,7 +268,11 @@ class Renderer(nn.Module):
     def _render_hit(self, field: Field, o: Tensor, d: Tensor, t: Tensor, bg: Tensor,
                     near: Tensor, far: Tensor, perturb: bool, gen: torch.Generator | None,
                     copies: int = 1) -> list[dict[str, Tensor]]:
-        """Both levels for rays that all hit the clipping volume."""
+        """Both levels for rays that all hit the clipping volume (on a CPU in compiled
+        loops: :mod:`eventrecon.render.compiled_render`)."""
+        if self.compiled and compiled_render.supported(field, o, d, t, bg):
+            return compiled_render.render_hit(self, field, o, d, t, bg, near, far, perturb,
+                                              gen, copies)
         s_c = stratified(near, far, self.n_coarse, perturb, gen, copies)
         skipping = self.skipping
         if skipping:
@@ -334,18 +342,6 @@ class Renderer(nn.Module):
         return [{key: missed[key].expand(n, *value.shape[1:]).index_put((idx,), value)
                  for key, value in level.items()} for level in sub]
 
-    def final_level(self, field: Field, o: Tensor, d: Tensor, t: Tensor, bg: Tensor
-                    ) -> dict[str, Tensor]:
-        """The final level's ``rgb [N, 3]``, ``opacity [N]``, ``depth [N]`` without jitter
-        (images, curve points; :meth:`forward`'s arguments): in compiled loops where
-        :func:`~eventrecon.render.compiled_render.supported` (the same values to float32
-        rounding), else by :meth:`forward`."""
-        out = render_final(self, field, o, d, t, bg)
-        if out is None:
-            level = self.forward(field, o, d, t, bg, perturb=False)[-1]
-            out = {key: level[key] for key in ("rgb", "opacity", "depth")}
-        return out
-
     def image_autocast(self, device: torch.device) -> contextlib.AbstractContextManager:
         """:func:`~eventrecon.precision.image_autocast` of :attr:`image_dtype` on ``device``."""
         return image_autocast(self.image_dtype, device)
@@ -389,7 +385,7 @@ class Renderer(nn.Module):
         with self.image_autocast(device):
             for i in range(0, h * w, chunk):
                 j = slice(i, i + chunk)
-                level = self.final_level(field, o[j], d[j], tt[j], bg[j])
+                level = self.forward(field, o[j], d[j], tt[j], bg[j], perturb=False)[-1]
                 for key in parts:
                     parts[key].append(level[key].float())
         return {"rgb": torch.cat(parts["rgb"]).reshape(h, w, 3),

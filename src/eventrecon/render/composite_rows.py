@@ -1,0 +1,257 @@
+"""Alpha compositing from the field's rows, forward and backward, in compiled loops (CPU).
+
+The renderer's compiled path (:mod:`eventrecon.render.compiled_render`) asks the field
+only at the samples that count and keeps its answers as rows ``σ [M]``, ``c [M, 3]``; a
+map ``slot [n, K]`` says which row sample ``i`` of ray ``r`` reads (−1: density 0, not
+asked or stopped). :class:`CompositeRows` composites the sorted samples ``s [n, K]`` of
+each ray over its background with the quadrature of :mod:`eventrecon.render.volume`,
+
+.. math::
+    \\tau_i = \\min(\\max(\\sigma_i, 0)\\max(\\delta_i, 0), \\tau_{max}),\\quad
+    T_i = e^{-\\sum_{j<i}\\tau_j},\\quad w_i = T_i - T_{i+1} = T_i\\,(1 - e^{-\\tau_i}),
+
+    C = \\mathrm{clamp}\\Big(\\sum_i w_i c_i + T_K\\,bg, 0, 1\\Big),\\quad O = 1 - T_K,\\quad
+    D = \\sum_i w_i s_i + T_K\\,far,
+
+the optical depth summed and ``T`` evaluated in float64, one exponential per sample (the
+same values as PyTorch's float32 ``exp(−Σ) · (−expm1(−τ))`` to float32 rounding). Its
+gradient comes from one pass per ray from the back, with ``g_C`` (zero where the clamp
+is active), ``g_O``, ``g_D`` the incoming gradients:
+
+.. math::
+    \\frac{\\partial L}{\\partial c_i} = w_i\\,g_C,\\qquad
+    \\frac{\\partial L}{\\partial \\tau_i} = g_C\\cdot\\Big(T_{i+1} c_i - \\sum_{j>i} w_j c_j
+    - T_K\\,bg\\Big) + g_O T_K + g_D\\Big(T_{i+1} s_i - \\sum_{j>i} w_j s_j - T_K\\,far\\Big),
+
+and :math:`\\partial L/\\partial\\sigma_i = \\partial L/\\partial\\tau_i \\cdot \\max(\\delta_i, 0)`
+where ``σ_i ≥ 0`` and ``τ`` is not clamped (PyTorch's clamps pass the gradient at their
+bounds). The weights ``w [n, K]`` are returned too, without gradient (the fine level's
+histogram). :func:`merge` forms the union of two sorted sample lists with their slots.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from eventrecon.render.compiled import compiled, compiled_parallel, parts, prange
+from eventrecon.render.samplers import TAU_MAX
+
+__all__ = ["CompositeRows", "merge", "GRAIN"]
+
+#: The optical thickness clamp, in the compositing's dtype.
+_TAU_MAX = np.float32(TAU_MAX)
+#: Rays per range, at least, when a loop is split between threads.
+GRAIN = 1024
+
+
+@compiled
+def _tau(sigma: Any, step: Any) -> Any:
+    """``τ = min(max(σ, 0) · max(δ, 0), τ_max)`` in float32, a NaN kept (PyTorch's clamps
+    propagate it, and a diverging run must see it)."""
+    zero = np.float32(0)
+    raw = (zero if sigma < zero else sigma) * (zero if step < zero else step)
+    return _TAU_MAX if raw > _TAU_MAX else raw
+
+
+@compiled
+def _unit(x: Any) -> Any:
+    """``x`` clamped to [0, 1], a NaN kept."""
+    return np.float32(0) if x < 0 else (np.float32(1) if x > 1 else x)
+
+
+@compiled
+def _forward(s: Any, slot: Any, far: Any, sig: Any, col: Any, bg: Any, rgb: Any,
+             opacity: Any, depth: Any, weights: Any) -> None:
+    """``rgb [n, 3]``, ``opacity [n]``, ``depth [n]`` and ``weights [n, K]`` of the rays
+    (module docstring); ``s [n, K]`` sorted, ``slot [n, K]`` rows of ``sig [M]``,
+    ``col [M, 3]``. A sample with a row adds ``w c`` even at ``w = 0``, so a non-finite
+    colour or density makes the ray NaN, as in PyTorch's compositing."""
+    k, zero, one = s.shape[1], np.float32(0), np.float32(1)
+    for r in range(s.shape[0]):
+        excl, trans, c0, c1, c2, dep = 0.0, 1.0, 0.0, 0.0, 0.0, 0.0     # float64 sums
+        for q in range(k):
+            weights[r, q] = zero
+            row = slot[r, q]
+            if row < 0:
+                continue
+            end = s[r, q + 1] if q + 1 < k else far[r]
+            tau = _tau(sig[row], end - s[r, q])
+            wt = zero
+            if tau != zero:                     # w = T_q − T_{q+1}, both in float64
+                excl += tau
+                after = np.exp(-excl)
+                wt = np.float32(trans - after)
+                trans = after
+            weights[r, q] = wt
+            c0 += wt * col[row, 0]
+            c1 += wt * col[row, 1]
+            c2 += wt * col[row, 2]
+            dep += wt * s[r, q]
+        t_last = np.float32(trans)
+        rgb[r, 0] = _unit(np.float32(c0) + t_last * bg[r, 0])
+        rgb[r, 1] = _unit(np.float32(c1) + t_last * bg[r, 1])
+        rgb[r, 2] = _unit(np.float32(c2) + t_last * bg[r, 2])
+        opacity[r] = one - t_last
+        depth[r] = np.float32(dep) + t_last * far[r]
+
+
+@compiled
+def _backward(s: Any, slot: Any, far: Any, sig: Any, col: Any, bg: Any, g_rgb: Any,
+              g_opacity: Any, g_depth: Any, g_sig: Any, g_col: Any, after: Any) -> None:
+    """``g_sig [M]``, ``g_col [M, 3]`` (zero on entry) from the outputs' gradients (module
+    docstring); ``after [K]`` float64 scratch: the transmittance after each sample."""
+    k, zero, one = s.shape[1], np.float32(0), np.float32(1)
+    for r in range(s.shape[0]):
+        excl, trans, c0, c1, c2 = 0.0, 1.0, 0.0, 0.0, 0.0       # the forward pass again
+        for q in range(k):
+            row = slot[r, q]
+            if row >= 0:
+                end = s[r, q + 1] if q + 1 < k else far[r]
+                tau = _tau(sig[row], end - s[r, q])
+                wt = zero
+                if tau != zero:
+                    excl += tau
+                    before, trans = trans, np.exp(-excl)
+                    wt = np.float32(before - trans)
+                c0 += wt * col[row, 0]
+                c1 += wt * col[row, 1]
+                c2 += wt * col[row, 2]
+            after[q] = trans
+        t_last = np.float32(trans)
+        # the clamp of C to [0, 1] passes the gradient where C is inside, bounds included
+        pre = (np.float32(c0) + t_last * bg[r, 0], np.float32(c1) + t_last * bg[r, 1],
+               np.float32(c2) + t_last * bg[r, 2])
+        g0 = g_rgb[r, 0] if zero <= pre[0] <= one else zero
+        g1 = g_rgb[r, 1] if zero <= pre[1] <= one else zero
+        g2 = g_rgb[r, 2] if zero <= pre[2] <= one else zero
+        t_k = after[k - 1]
+        b0, b1, b2 = t_k * bg[r, 0], t_k * bg[r, 1], t_k * bg[r, 2]     # Σ_{j>i} w c + T_K bg
+        bd = t_k * far[r]                                               # Σ_{j>i} w s + T_K far
+        g_o, g_d = np.float64(g_opacity[r]), np.float64(g_depth[r])
+        for q in range(k - 1, -1, -1):
+            row = slot[r, q]
+            if row < 0:
+                continue
+            t_next = after[q]
+            wt = (after[q - 1] if q > 0 else 1.0) - t_next
+            end = s[r, q + 1] if q + 1 < k else far[r]
+            step = max(end - s[r, q], zero)
+            x0, x1, x2, sq = col[row, 0], col[row, 1], col[row, 2], s[r, q]
+            d_tau = (g0 * (t_next * x0 - b0) + g1 * (t_next * x1 - b1)
+                     + g2 * (t_next * x2 - b2) + g_o * t_k + g_d * (t_next * sq - bd))
+            passes = sig[row] >= zero and max(sig[row], zero) * step <= _TAU_MAX
+            g_sig[row] = np.float32(d_tau * step) if passes else zero
+            g_col[row, 0] = np.float32(wt * g0)
+            g_col[row, 1] = np.float32(wt * g1)
+            g_col[row, 2] = np.float32(wt * g2)
+            b0 += wt * x0
+            b1 += wt * x1
+            b2 += wt * x2
+            bd += wt * sq
+
+
+@compiled_parallel
+def _forward_parts(s: Any, slot: Any, far: Any, sig: Any, col: Any, bg: Any, rgb: Any,
+                   opacity: Any, depth: Any, weights: Any, p: int) -> None:
+    """:func:`_forward` on ``p`` equal ranges of the rays at once."""
+    n = s.shape[0]
+    for k in prange(p):
+        a, b = n * k // p, n * (k + 1) // p
+        _forward(s[a:b], slot[a:b], far[a:b], sig, col, bg[a:b], rgb[a:b], opacity[a:b],
+                 depth[a:b], weights[a:b])
+
+
+@compiled_parallel
+def _backward_parts(s: Any, slot: Any, far: Any, sig: Any, col: Any, bg: Any, g_rgb: Any,
+                    g_opacity: Any, g_depth: Any, g_sig: Any, g_col: Any, after: Any) -> None:
+    """:func:`_backward` on ``P`` equal ranges of the rays at once (``after [P, K]``: each
+    range's scratch; a row belongs to one ray, so the ranges write disjoint rows)."""
+    n, p = s.shape[0], after.shape[0]
+    for k in prange(p):
+        a, b = n * k // p, n * (k + 1) // p
+        _backward(s[a:b], slot[a:b], far[a:b], sig, col, bg[a:b], g_rgb[a:b], g_opacity[a:b],
+                  g_depth[a:b], g_sig, g_col, after[k])
+
+
+class CompositeRows(torch.autograd.Function):
+    """``(σ [M], c [M, 3], s [n, K], slot [n, K], far [n], bg [n, 3])`` →
+    ``(rgb [n, 3], opacity [n], depth [n], weights [n, K])`` (module docstring), all
+    float32; gradients reach ``σ`` and ``c`` (the weights carry none)."""
+
+    @staticmethod
+    def forward(ctx: Any, sig: Tensor, col: Tensor, s: Tensor, slot: Tensor,  # type: ignore[override]
+                far: Tensor, bg: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        sig, col = sig.detach().contiguous(), col.detach().contiguous()
+        n, k = s.shape
+        rgb, opacity, depth = torch.empty(n, 3), torch.empty(n), torch.empty(n)
+        weights = torch.empty(n, k)
+        args = [x.numpy() for x in (s, slot, far, sig, col, bg)]
+        _forward_parts(*args, rgb.numpy(), opacity.numpy(), depth.numpy(), weights.numpy(),
+                       parts(n, GRAIN))
+        ctx.save_for_backward(sig, col, s, slot, far, bg)
+        ctx.mark_non_differentiable(weights)
+        return rgb, opacity, depth, weights
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx: Any, g_rgb: Tensor, g_opacity: Tensor, g_depth: Tensor,  # type: ignore[override]
+                 _: Tensor) -> tuple[Tensor | None, ...]:
+        sig, col, s, slot, far, bg = ctx.saved_tensors
+        n, k = s.shape
+        g_sig, g_col = torch.zeros_like(sig), torch.zeros_like(col)
+        grads = [g.contiguous().float().numpy() for g in (g_rgb, g_opacity, g_depth)]
+        _backward_parts(*(x.numpy() for x in (s, slot, far, sig, col, bg)), *grads,
+                        g_sig.numpy(), g_col.numpy(), np.empty((parts(n, GRAIN), k)))
+        return g_sig, g_col, None, None, None, None
+
+
+def composite_rows(sig: Tensor, col: Tensor, s: Tensor, slot: Tensor, far: Tensor,
+                   bg: Tensor) -> dict[str, Tensor]:
+    """:class:`CompositeRows` as the renderer's level dict: ``rgb``, ``opacity``,
+    ``depth``, ``weights`` and ``s`` (contiguous float32 CPU tensors; ``slot`` int64)."""
+    rgb, opacity, depth, weights = CompositeRows.apply(sig.float(), col.float(), s, slot,
+                                                       far, bg)
+    return {"rgb": rgb, "opacity": opacity, "depth": depth, "weights": weights, "s": s}
+
+
+@compiled
+def _merge(s_c: Any, slot_c: Any, s_f: Any, slot_f: Any, keys: Any, ends: Any,
+           end_rows: Any, s_u: Any, slot_u: Any) -> None:
+    """The union ``s_u, slot_u [n, K_c + K_f]`` of two sorted lists per ray (ties: the
+    first list's sample first; a NaN distance sorts last, as in ``torch.sort``). Scratch
+    ``keys, ends, end_rows [K_c + K_f + 2]``: each list and an infinite last sample, so
+    that every read is in bounds; the choice is made with ``&``, ``|`` on the counts and
+    one comparison, without a branch on the data."""
+    kc, kf = s_c.shape[1], s_f.shape[1]
+    last = kc + kf + 1
+    for r in range(s_c.shape[0]):
+        for q in range(kc):
+            ends[q], end_rows[q] = s_c[r, q], slot_c[r, q]
+        for q in range(kf):
+            ends[kc + 1 + q], end_rows[kc + 1 + q] = s_f[r, q], slot_f[r, q]
+        ends[kc], ends[last] = np.inf, np.inf
+        for q in range(last + 1):
+            keys[q] = ends[q] if ends[q] == ends[q] else np.inf
+        i, j = 0, kc + 1
+        for q in range(kc + kf):
+            first = (i < kc) & ((j == last) | (keys[i] <= keys[j]))
+            s_u[r, q] = ends[i] if first else ends[j]
+            slot_u[r, q] = end_rows[i] if first else end_rows[j]
+            i += first
+            j += 1 - first
+
+
+def merge(s_c: Tensor, slot_c: Tensor, s_f: Tensor, slot_f: Tensor) -> tuple[Tensor, Tensor]:
+    """The sorted union of the samples ``s_c [n, K_c]``, ``s_f [n, K_f]`` (each sorted)
+    with their slots: ``(s [n, K_c + K_f], slot [n, K_c + K_f])``. ``torch.sort`` is not
+    stable, so at two equal distances it may order them the other way."""
+    n, k = s_c.shape[0], s_c.shape[1] + s_f.shape[1]
+    s_u, slot_u = torch.empty(n, k), torch.empty(n, k, dtype=torch.int64)
+    _merge(s_c.numpy(), slot_c.numpy(), s_f.numpy(), slot_f.numpy(),
+           np.empty(k + 2, np.float32), np.empty(k + 2, np.float32), np.empty(k + 2, np.int64),
+           s_u.numpy(), slot_u.numpy())
+    return s_u, slot_u
