@@ -49,7 +49,7 @@ if TYPE_CHECKING:
 __all__ = ["supported", "render_hit"]
 
 #: :class:`eventrecon.render.volume.Renderer` (which imports this module).
-Renderer = nn.Module
+_Renderer = nn.Module
 
 
 @compiled
@@ -166,7 +166,7 @@ class _Rows:
     group by group (:func:`_select`), kept as rows ``σ [M]``, ``rgb [M, 3]`` float32
     (with autograd's graph when gradients are on)."""
 
-    def __init__(self, renderer: Renderer, field: Field, o: Tensor, d: Tensor,
+    def __init__(self, renderer: _Renderer, field: Field, o: Tensor, d: Tensor,
                  t: Tensor) -> None:
         self.renderer, self.field = renderer, field
         self.o, self.d, self.t = (x.contiguous().numpy() for x in (o, d, t[:, 0]))
@@ -206,7 +206,7 @@ class _Rows:
         return torch.cat(self.sig), torch.cat(self.rgb)
 
 
-def _coarse(renderer: Renderer, rows: _Rows, s_c: Tensor, far: np.ndarray,
+def _coarse(renderer: _Renderer, rows: _Rows, s_c: Tensor, far: np.ndarray,
             keep: np.ndarray) -> np.ndarray:
     """Ask the coarse samples (module docstring, steps 1–2); returns ``slot [n, K]``."""
     r, (n, k) = renderer, s_c.shape
@@ -230,7 +230,7 @@ def _coarse(renderer: Renderer, rows: _Rows, s_c: Tensor, far: np.ndarray,
     return slot
 
 
-def render_hit(renderer: Renderer, field: Field, o: Tensor, d: Tensor, t: Tensor,
+def render_hit(renderer: _Renderer, field: Field, o: Tensor, d: Tensor, t: Tensor,
                bg: Tensor, near: Tensor, far: Tensor, perturb: bool,
                gen: torch.Generator | None, copies: int) -> list[dict[str, Tensor]]:
     """:meth:`Renderer._render_hit` (its arguments and levels) in compiled loops, for

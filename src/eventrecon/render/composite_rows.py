@@ -245,13 +245,26 @@ def _merge(s_c: Any, slot_c: Any, s_f: Any, slot_f: Any, keys: Any, ends: Any,
             j += 1 - first
 
 
+@compiled_parallel
+def _merge_parts(s_c: Any, slot_c: Any, s_f: Any, slot_f: Any, keys: Any, ends: Any,
+                 end_rows: Any, s_u: Any, slot_u: Any) -> None:
+    """:func:`_merge` on ``P`` equal ranges of the rays at once (``keys, ends, end_rows
+    [P, K_c + K_f + 2]``: each range's scratch)."""
+    n, p = s_c.shape[0], keys.shape[0]
+    for k in prange(p):
+        a, b = n * k // p, n * (k + 1) // p
+        _merge(s_c[a:b], slot_c[a:b], s_f[a:b], slot_f[a:b], keys[k], ends[k], end_rows[k],
+               s_u[a:b], slot_u[a:b])
+
+
 def merge(s_c: Tensor, slot_c: Tensor, s_f: Tensor, slot_f: Tensor) -> tuple[Tensor, Tensor]:
     """The sorted union of the samples ``s_c [n, K_c]``, ``s_f [n, K_f]`` (each sorted)
     with their slots: ``(s [n, K_c + K_f], slot [n, K_c + K_f])``. ``torch.sort`` is not
     stable, so at two equal distances it may order them the other way."""
     n, k = s_c.shape[0], s_c.shape[1] + s_f.shape[1]
     s_u, slot_u = torch.empty(n, k), torch.empty(n, k, dtype=torch.int64)
-    _merge(s_c.numpy(), slot_c.numpy(), s_f.numpy(), slot_f.numpy(),
-           np.empty(k + 2, np.float32), np.empty(k + 2, np.float32), np.empty(k + 2, np.int64),
-           s_u.numpy(), slot_u.numpy())
+    p = parts(n, GRAIN)
+    _merge_parts(s_c.numpy(), slot_c.numpy(), s_f.numpy(), slot_f.numpy(),
+                 np.empty((p, k + 2), np.float32), np.empty((p, k + 2), np.float32),
+                 np.empty((p, k + 2), np.int64), s_u.numpy(), slot_u.numpy())
     return s_u, slot_u
