@@ -9,6 +9,8 @@ annealed radius, several copies of a ray and without a fine level.
 
 from __future__ import annotations
 
+from unittest import mock
+
 import numpy as np
 import pytest
 import torch
@@ -17,7 +19,7 @@ from torch import Tensor, nn
 from eventrecon.fields.base import Field
 from eventrecon.render import compiled_render, composite_rows
 from eventrecon.render.compiled import numba_threads, parts
-from eventrecon.render.samplers import pdf_bins, sample_pdf, stratified
+from eventrecon.render.samplers import pdf_bins, sample_pdf, stratified, uniform
 from eventrecon.render.volume import Renderer, composite
 
 pytestmark = pytest.mark.skipif(not compiled_render.AVAILABLE, reason="needs numba")
@@ -70,9 +72,10 @@ def _same_samples(a: Tensor, b: Tensor) -> None:
     assert float((diff > 1e-5).float().mean()) <= 1e-3 and float(diff.max()) <= 1e-3
 
 
-def _renderer(skip: str, n_fine: int = 32, compiled: bool = True, **kw) -> Renderer:
+def _renderer(skip: str, n_fine: int = 32, compiled: bool = True, update: bool = True,
+              **kw) -> Renderer:
     r = Renderer(n_coarse=32, n_fine=n_fine, skip=skip, compiled=compiled, **CYL, **kw)
-    if skip == "grid":
+    if skip == "grid" and update:
         for step in range(3):
             r.occupancy.update(lambda x, t: r.masked_density(TwoBlobs(), x, t),
                                torch.Generator().manual_seed(step))
@@ -80,14 +83,18 @@ def _renderer(skip: str, n_fine: int = 32, compiled: bool = True, **kw) -> Rende
 
 
 def _render(r: Renderer, rays: tuple[Tensor, ...], grad: bool, perturb: bool = False,
-            copies: int = 1) -> tuple[list[dict[str, Tensor]], int, list[Tensor]]:
+            copies: int = 1, field: Field | None = None
+            ) -> tuple[list[dict[str, Tensor]], int, list[Tensor]]:
     """Both levels, the samples sent to the field and (with ``grad``) the gradients of
     a loss on every output with respect to the field's parameters."""
-    field = TwoBlobs()
+    field = field or TwoBlobs()
     r.field_inputs = 0
     gen = torch.Generator().manual_seed(7) if perturb else None
-    with torch.set_grad_enabled(grad):
+    spy = mock.patch.object(compiled_render, "render_hit", wraps=compiled_render.render_hit)
+    with torch.set_grad_enabled(grad), spy as hits:
         levels = r(field, *rays, perturb=perturb, gen=gen, copies=copies)
+    assert hits.called == r.compiled          # the path asked for is the path taken
+    with torch.set_grad_enabled(grad):
         grads = []
         if grad:
             w = torch.linspace(0.5, 1.5, rays[0].shape[0])
@@ -111,6 +118,7 @@ def test_the_same_samples_levels_and_gradients_as_pytorchs_passes(
     out, n_out, g_out = _render(_renderer(skip, n_fine, True, clip_scale=clip_scale), rays,
                                 grad, perturb=grad)
     assert n_out == n_ref and len(out) == len(ref)
+    assert torch.equal(out[0]["s"], ref[0]["s"])                  # the coarse draws
     for a, b in zip(out, ref):
         _same_samples(a["s"], b["s"])
         for key in KEYS:
@@ -154,18 +162,17 @@ def test_the_fine_samples_are_sample_pdfs_quantiles() -> None:
     sigma = torch.rand(n, k, generator=g) * 8 * (torch.rand(n, k, generator=g) > 0.4)
     sigma[:20] = 0.0                              # empty rays: the eps makes them uniform
     weights = composite(sigma, torch.zeros(n, k, 3), s, far, torch.zeros(n, 3))["weights"]
-    for u in (torch.linspace(0, 1, n_fine).expand(n, n_fine).contiguous(),
-              torch.rand(n, n_fine, generator=g).sort(-1).values):
+    bins, w = pdf_bins(s, weights)
+    for deterministic in (True, False):           # sample_pdf's quantiles, or its draws
+        if deterministic:
+            u = torch.linspace(0, 1, n_fine).expand(n, n_fine).contiguous()
+        else:
+            u = uniform((n, n_fine), torch.Generator().manual_seed(9), s).sort(-1).values
+        ref = sample_pdf(bins, w, n_fine, deterministic, torch.Generator().manual_seed(9))
         s_f, stop_s = torch.empty(n, n_fine), np.empty(n, np.float32)
         compiled_render._fine(s.numpy(), far.numpy(), weights.numpy(), u.numpy(),
                               np.array([1e-6], np.float32), np.array([1e-4], np.float32),
                               np.empty(k - 1, np.float32), s_f.numpy(), stop_s)
-        # sample_pdf's own quantiles or draws: u from the same generator state
-        bins, w = pdf_bins(s, weights)
-        if u[0, 0] == 0 and u[0, -1] == 1:
-            ref = sample_pdf(bins, w, n_fine, deterministic=True)
-        else:
-            ref = _sample_pdf_at(bins, w, u)
         assert torch.allclose(s_f, ref, atol=1e-5, rtol=0)
     # the stop: the end of the first step after which 1 − Σw < 1e-4, else far
     trans = 1.0 - weights.cumsum(-1)
@@ -173,21 +180,6 @@ def test_the_fine_samples_are_sample_pdfs_quantiles() -> None:
     first = (trans < 1e-4).float().argmax(-1)
     expect = torch.where((trans < 1e-4).any(-1), ends.gather(1, first[:, None])[:, 0], far)
     assert torch.equal(torch.from_numpy(stop_s), expect)
-
-
-def _sample_pdf_at(bins: Tensor, w: Tensor, u: Tensor) -> Tensor:
-    """``sample_pdf``'s inverse CDF at given sorted quantiles ``u [n, m]`` (its random
-    branch draws them itself), in its own operations."""
-    pdf = w.clamp(min=0) + 1e-6
-    pdf = pdf / pdf.sum(-1, keepdim=True)
-    cdf = torch.cat([torch.zeros_like(pdf[:, :1]), pdf.cumsum(-1)], -1)
-    cdf[:, -1] = 1.0
-    hi = torch.searchsorted(cdf.contiguous(), u, right=True).clamp(1, w.shape[1])
-    lo = hi - 1
-    c0, c1, b0, b1 = cdf.gather(1, lo), cdf.gather(1, hi), bins.gather(1, lo), bins.gather(1, hi)
-    den = c1 - c0
-    frac = ((u - c0) / torch.where(den > 0, den, torch.ones_like(den))).clamp(0, 1)
-    return b0 + frac * (b1 - b0)
 
 
 def test_composite_rows_gradient_against_finite_differences() -> None:
@@ -230,7 +222,7 @@ def test_rays_split_between_threads_give_the_same_bits() -> None:
     try:
         for k in (1, 2):
             torch.set_num_threads(k)
-            assert parts(3000, composite_rows.GRAIN) == k
+            assert parts(3000, composite_rows.RAYS_PER_RANGE) == k
             outs.append(_render(_renderer("grid"), rays, True, perturb=True))
     finally:
         torch.set_num_threads(threads)
@@ -257,17 +249,56 @@ class NaNPatch(TwoBlobs):
         return sigma, rgb
 
 
-@pytest.mark.parametrize("skip", ["none", "grid"])
-def test_a_non_finite_field_makes_the_same_rays_nan(skip: str) -> None:
+@pytest.mark.parametrize(("skip", "clip_scale", "update"),
+                         [("none", 1.0, True), ("grid", 1.0, True), ("none", 0.6, True),
+                          ("grid", 1.0, False)])
+@pytest.mark.parametrize("grad", [False, True], ids=["images", "training"])
+def test_a_non_finite_field_makes_the_same_rays_nan(skip: str, clip_scale: float,
+                                                    update: bool, grad: bool) -> None:
     """A diverging run must see its NaN: the compiled compositing keeps it as PyTorch's
-    clamps and sums do (``tests/test_stability.py`` stops such a run by it)."""
+    clamps, sums and masks do, also where a sample is asked but masked (outside an
+    annealed cylinder, or behind a stop of the unasked grid: ``update=False``)
+    (``tests/test_stability.py`` stops such a run by it)."""
     rays = _rays(600, 6)
     outs = []
     for compiled in (False, True):
-        r = _renderer(skip, compiled=compiled)
-        with torch.no_grad():
-            outs.append(r(NaNPatch(), *rays))
+        r = _renderer(skip, compiled=compiled, update=update, clip_scale=clip_scale)
+        outs.append(_render(r, rays, grad, perturb=grad, field=NaNPatch())[0])
     for a, b in zip(*outs):
         for key in ("rgb", "opacity", "depth"):
             assert torch.equal(a[key].isnan(), b[key].isnan()), key
     assert outs[1][-1]["rgb"].isnan().any(-1).float().mean() > 0.1
+
+
+def test_composite_rows_and_its_gradient_at_the_clamps() -> None:
+    """Negative and huge densities (``τ`` clamped at ``TAU_MAX``), zero steps and colours
+    outside [0, 1] (the output clamped): the values and the gradients of PyTorch's
+    :func:`composite` under autograd."""
+    g = torch.Generator().manual_seed(8)
+    n, k = 64, 16
+    s = torch.sort(torch.rand(n, k, generator=g), -1).values * 2 + 1
+    s[:, 5] = s[:, 4]                               # a zero step
+    far = s[:, -1] + 0.25
+    sig = torch.randn(n * k, generator=g) * 3
+    sig[::7] = 1e9                                  # τ = 1e9 · δ > TAU_MAX
+    col = torch.rand(n * k, 3, generator=g) * 2 - 0.5
+    bg = torch.rand(n, 3, generator=g) * 1.4 - 0.2
+    slot = torch.arange(n * k).reshape(n, k)
+    mix = [torch.randn(n, 3, generator=g), torch.randn(n, generator=g),
+           torch.randn(n, generator=g)]
+    outs, grads = [], []
+    for compiled in (True, False):
+        x, c = sig.clone().requires_grad_(), col.clone().requires_grad_()
+        if compiled:
+            out = composite_rows.composite_rows(x, c, s, slot, far, bg)
+        else:
+            out = composite(x.reshape(n, k), c.reshape(n, k, 3), s, far, bg)
+        loss = sum((out[key] * m).sum() for key, m in zip(("rgb", "opacity", "depth"), mix))
+        outs.append(out)
+        grads.append(torch.autograd.grad(loss, [x, c]))
+    for key in ("rgb", "opacity", "depth", "weights"):
+        assert torch.allclose(outs[0][key], outs[1][key], atol=2e-6, rtol=1e-5), key
+    assert ((outs[1]["rgb"] == 0) | (outs[1]["rgb"] == 1)).any()   # the clamp is active
+    for a, b in zip(*grads):
+        assert torch.allclose(a, b, atol=1e-5, rtol=1e-4)
+        assert (a == 0).any() and (a != 0).any()

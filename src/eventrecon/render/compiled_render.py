@@ -13,8 +13,8 @@ meet the cylinder, the same stages run ray by ray (:func:`render_hit`):
    groups: a ray whose transmittance ``e^{−Σ max(σ, 0) δ}`` is below
    ``stop_transmittance`` at a group's start takes no more samples (:func:`_advance`).
    Without gradients each group is asked only for the rays still alive; with gradients
-   the field is asked once and the stopped samples are dropped from the level, as
-   :meth:`Renderer._march` does;
+   the field is asked once and the stopped samples are masked (they count as ``σ · 0``,
+   so only a NaN there shows), as :meth:`Renderer._march` multiplies by its masks;
 3. the coarse level is composited from the rows (:mod:`eventrecon.render.composite_rows`);
 4. :func:`_fine`: the fine samples by the inverse CDF of :func:`~.samplers.sample_pdf`
    (the same quantiles or the same sorted uniform draws, walked against the CDF: a merge,
@@ -23,9 +23,14 @@ meet the cylinder, the same stages run ray by ray (:func:`render_hit`):
 5. the union of both levels, merged as two sorted lists, is composited.
 
 Without skipping (``skip="none"``) every sample is asked, those outside the cylinder too
-(their density counts as 0), as in PyTorch's path. The field sees the same rows in the
-same order, so its values are the same; the compositing agrees with PyTorch's to float32
-rounding, forward and backward (``tests/test_compiled_render.py``).
+(masked: ``σ · 0``), as in PyTorch's path. The coarse level asks the field on the same
+rows in the same order, so its values are the same; the compositing agrees with PyTorch's
+to float32 rounding, forward and backward (``tests/test_compiled_render.py``). The fine
+samples agree to rounding too, except in histogram bins that hold almost nothing, where
+the inverse CDF divides by a difference of nearly equal CDF values (the normaliser is
+summed in float64 here, in float32 there): such a sample may move by up to ~1e-3 of a
+distance, and a sample right at a stop or a cell boundary may be asked in one path and not
+the other. A gradient of the weights, or a second derivative, needs PyTorch's passes.
 """
 
 from __future__ import annotations
@@ -39,7 +44,7 @@ from torch import Tensor, nn
 
 from eventrecon.render.clipping import INSIDE_TOL
 from eventrecon.render.compiled import AVAILABLE, compiled, compiled_parallel, parts, prange
-from eventrecon.render.composite_rows import GRAIN, composite_rows, merge
+from eventrecon.render.composite_rows import RAYS_PER_RANGE, composite_rows, merge
 from eventrecon.render.queries import query_field
 from eventrecon.render.samplers import stratified, uniform
 
@@ -47,10 +52,6 @@ if TYPE_CHECKING:
     from eventrecon.fields.base import Field
 
 __all__ = ["supported", "render_hit"]
-
-#: :class:`eventrecon.render.volume.Renderer` (which imports this module).
-_Renderer = nn.Module
-
 
 @compiled
 def _select(o: Any, d: Any, t: Any, s: Any, col0: int, col1: int, keep: Any, limit: Any,
@@ -61,7 +62,8 @@ def _select(o: Any, d: Any, t: Any, s: Any, col0: int, col1: int, keep: Any, lim
     ``bounds[1] ≤ y ≤ bounds[2]``. Writes the rows' points ``pts [m, 3]`` and times
     ``times [m]`` in ray-major order, ``slot[r, j]`` (``base`` + the row, or −1:
     density 0) and returns ``m``. ``outside``: samples outside the cylinder get rows too,
-    but slot −1 (``skip="none"`` asks every sample)."""
+    masked (``slot = −(base + row) − 2``: they count as ``σ · 0``; ``skip="none"`` asks
+    every sample)."""
     m = 0
     for r in range(s.shape[0]):
         o0, o1, o2, d0, d1, d2 = o[r, 0], o[r, 1], o[r, 2], d[r, 0], d[r, 1], d[r, 2]
@@ -75,8 +77,7 @@ def _select(o: Any, d: Any, t: Any, s: Any, col0: int, col1: int, keep: Any, lim
             if inside or outside:
                 pts[m, 0], pts[m, 1], pts[m, 2] = x, y, z
                 times[m] = t[r]
-                if inside:
-                    slot[r, j] = base + m
+                slot[r, j] = base + m if inside else -(base + m) - 2
                 m += 1
     return m
 
@@ -144,18 +145,21 @@ def _fine_parts(s: Any, far: Any, weights: Any, u: Any, eps: Any, stop: Any, cdf
     """:func:`_fine` on ``P`` equal ranges of the rays at once (``cdf [P, K − 1]``: each
     range's scratch)."""
     n, p = s.shape[0], cdf.shape[0]
-    for k in prange(p):
-        a, b = n * k // p, n * (k + 1) // p
-        _fine(s[a:b], far[a:b], weights[a:b], u[a:b], eps, stop, cdf[k], s_f[a:b],
+    for part in prange(p):
+        a, b = n * part // p, n * (part + 1) // p
+        _fine(s[a:b], far[a:b], weights[a:b], u[a:b], eps, stop, cdf[part], s_f[a:b],
               stop_s[a:b])
 
 
 def supported(field: Field, o: Tensor, d: Tensor, t: Tensor, bg: Tensor) -> bool:
     """Whether :func:`render_hit` serves this call: numba, float32 rays ``o, d [N, 3]``,
-    ``t [N, 1]``, ``bg [N, 3]`` and the field on the CPU."""
+    ``t [N, 1]``, ``bg [N, 3]`` and the field on the CPU, and no gradient asked of the
+    rays or the background (only the field's rows carry one here)."""
     state = itertools.chain(field.parameters(), field.buffers())
+    rays = (o, d, t, bg)
     return (AVAILABLE and all(x.device.type == "cpu" and x.dtype == torch.float32
-                              for x in (o, d, t, bg))
+                              for x in rays)
+            and not (torch.is_grad_enabled() and any(x.requires_grad for x in rays))
             and all(p.device.type == "cpu" for p in itertools.islice(state, 1))
             and o.dim() == 2 and o.shape[1:] == (3,) and d.shape == o.shape
             and t.shape == (o.shape[0], 1) and bg.shape == o.shape)
@@ -166,7 +170,7 @@ class _Rows:
     group by group (:func:`_select`), kept as rows ``σ [M]``, ``rgb [M, 3]`` float32
     (with autograd's graph when gradients are on)."""
 
-    def __init__(self, renderer: _Renderer, field: Field, o: Tensor, d: Tensor,
+    def __init__(self, renderer: nn.Module, field: Field, o: Tensor, d: Tensor,
                  t: Tensor) -> None:
         self.renderer, self.field = renderer, field
         self.o, self.d, self.t = (x.contiguous().numpy() for x in (o, d, t[:, 0]))
@@ -206,7 +210,7 @@ class _Rows:
         return torch.cat(self.sig), torch.cat(self.rgb)
 
 
-def _coarse(renderer: _Renderer, rows: _Rows, s_c: Tensor, far: np.ndarray,
+def _coarse(renderer: nn.Module, rows: _Rows, s_c: Tensor, far: np.ndarray,
             keep: np.ndarray) -> np.ndarray:
     """Ask the coarse samples (module docstring, steps 1–2); returns ``slot [n, K]``."""
     r, (n, k) = renderer, s_c.shape
@@ -214,13 +218,13 @@ def _coarse(renderer: _Renderer, rows: _Rows, s_c: Tensor, far: np.ndarray,
     if not r.skipping:
         rows.ask(sc, (0, k), keep, np.full(n, np.inf, np.float32), slot, True)
         return slot
-    bounds = torch.linspace(0, k, r.march_chunks + 1).round().long().tolist()
-    groups = [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
-    tau = torch.zeros(n)
-    if torch.is_grad_enabled():   # one call; the stopped samples leave the level
+    groups, tau = r.march_groups(k), torch.zeros(n)
+    if torch.is_grad_enabled():   # one call; the stopped samples are masked (σ · 0)
         sig = rows.ask(sc, (0, k), keep, np.full(n, np.inf, np.float32), slot, False)
         for a, b in groups:
-            slot[(torch.exp(-tau) <= r.stop_transmittance).numpy(), a:b] = -1
+            stopped = (torch.exp(-tau) > r.stop_transmittance).logical_not().numpy()
+            cols = slot[stopped, a:b]
+            slot[stopped, a:b] = np.where(cols >= 0, -cols - 2, cols)
             _advance(sc, far, a, b, slot, sig, 0, tau.numpy())
         return slot
     for a, b in groups:           # a ray that stopped asks nothing more (limit −inf)
@@ -230,7 +234,7 @@ def _coarse(renderer: _Renderer, rows: _Rows, s_c: Tensor, far: np.ndarray,
     return slot
 
 
-def render_hit(renderer: _Renderer, field: Field, o: Tensor, d: Tensor, t: Tensor,
+def render_hit(renderer: nn.Module, field: Field, o: Tensor, d: Tensor, t: Tensor,
                bg: Tensor, near: Tensor, far: Tensor, perturb: bool,
                gen: torch.Generator | None, copies: int) -> list[dict[str, Tensor]]:
     """:meth:`Renderer._render_hit` (its arguments and levels) in compiled loops, for
@@ -253,7 +257,7 @@ def render_hit(renderer: _Renderer, field: Field, o: Tensor, d: Tensor, t: Tenso
     _fine_parts(s_c.numpy(), far.numpy(), levels[0]["weights"].numpy(), u.numpy(),
                 np.array([1e-6], np.float32),
                 np.array([r.stop_transmittance if skipping else -1.0], np.float32),
-                np.empty((parts(n, GRAIN), k - 1), np.float32), s_f.numpy(), stop_s)
+                np.empty((parts(n, RAYS_PER_RANGE), k - 1), np.float32), s_f.numpy(), stop_s)
     slot_f = np.empty((n, r.n_fine), np.int64)
     if skipping:
         rows.ask(s_f.numpy(), (0, r.n_fine), r._occupied(o, d, t, s_f).numpy(), stop_s,

@@ -50,7 +50,6 @@ if TYPE_CHECKING:
 __all__ = ["TAU_MAX", "render_weights", "composite", "Renderer"]
 
 
-
 def render_weights(sigma: Tensor, delta: Tensor) -> tuple[Tensor, Tensor]:
     """Compositing weights ``w_i = T_i α_i`` and the final transmittance.
 
@@ -151,8 +150,9 @@ class Renderer(nn.Module):
         query_rows: most samples per field call without autograd (images, grid updates;
             0: no limit; the same up to rounding; :mod:`eventrecon.render.queries`).
         compiled: on a CPU, both levels in compiled loops
-            (:mod:`~eventrecon.render.compiled_render`: the same samples, values to float32
-            rounding); ``False``: PyTorch's passes (the reference).
+            (:mod:`~eventrecon.render.compiled_render`: the same samples and values to
+            float32 rounding; the weights carry no gradient there); ``False``: PyTorch's
+            passes (the reference).
     """
 
     def __init__(self, n_coarse: int = 64, n_fine: int = 128, radius: float = 0.5,
@@ -235,6 +235,11 @@ class Renderer(nn.Module):
         """``[n, K]`` bool: samples in occupied cells of the grid."""
         return self.occupancy.occupied_rays(o, d, t, s)
 
+    def march_groups(self, k: int) -> list[tuple[int, int]]:
+        """The ``march_chunks`` front-to-back groups ``[a, b)`` of ``k`` coarse samples."""
+        bounds = torch.linspace(0, k, self.march_chunks + 1).round().long().tolist()
+        return [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
     def _march(self, field: Field, o: Tensor, d: Tensor, t: Tensor, s: Tensor,
                far: Tensor) -> tuple[Tensor, Tensor]:
         """The coarse samples front to back in ``march_chunks`` groups: occupied samples of
@@ -247,8 +252,7 @@ class Renderer(nn.Module):
         keep = self._occupied(o, d, t, s)
         delta = step_sizes(s, far).float()
         tau = torch.zeros(n, device=s.device)
-        bounds = torch.linspace(0, k, self.march_chunks + 1).round().long().tolist()
-        groups = [(a, b) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+        groups = self.march_groups(k)
         if torch.is_grad_enabled():
             sig, rgb = self._query(field, o, d, t, s, keep)
             alive, tau_i = torch.ones_like(keep), sig.detach().float().clamp(min=0) * delta
