@@ -1,11 +1,13 @@
 """numba for the compiled loops outside the simulator: the decorators, and how many of
 numba's threads a loop may take (:func:`parts`, which the simulator's helpers use too).
 
-The simulator has its own (:mod:`eventrecon.sim.jit`), which this package may not import:
-the simulator imports the renderer's cameras, and subpackages must not import one another
-in a cycle (``tests/test_structure.py``). Nor does that module's stale-cache check cover
+The simulator's :mod:`eventrecon.sim.jit` builds on this module (its decorators add
+inlining and a stale-cache check over its own files); this package may not import that
+one: the simulator imports the renderer's cameras, and subpackages must not import one
+another in a cycle (``tests/test_structure.py``). That stale-cache check does not cover
 these files: numba keys a function's cache on its own file alone, so each module here
-keeps its compiled loops self-contained (no compiled helper from another module).
+keeps its compiled loops self-contained (no compiled helper from another module) and
+passes values that may change as arguments, not globals.
 """
 
 from __future__ import annotations
@@ -23,34 +25,34 @@ except ImportError:                              # pragma: no cover - numba is a
 #: ``numba.prange`` (``range`` without numba): the parallel loop of :func:`compiled_parallel`.
 prange = range if numba is None else numba.prange
 
-__all__ = ["AVAILABLE", "GRAIN", "compiled", "compiled_parallel", "numba_threads", "parts",
-           "prange"]
+__all__ = ["AVAILABLE", "GRAIN", "OPTIONS", "compiled", "compiled_parallel", "numba_threads",
+           "parts", "prange"]
 
 #: Whether numba could be imported (else the compiled paths decline and PyTorch's run).
 AVAILABLE = numba is not None
 #: The options of every compiled loop: cached beside its file, NumPy's error model (a
 #: division by zero gives inf/NaN), no GIL.
-_OPTIONS = {"cache": True, "error_model": "numpy", "nogil": True}
+OPTIONS = {"cache": True, "error_model": "numpy", "nogil": True}
 #: Items per range, at least, when :func:`parts` splits a loop between threads.
 GRAIN = 4096
 
 
 def compiled(fn: Any) -> Any:
     """``fn`` compiled with the options of the simulator's loops
-    (:func:`eventrecon.sim.jit.njit_borrowing`: :data:`_OPTIONS` and no reference
+    (:func:`eventrecon.sim.jit.njit_borrowing`: :data:`OPTIONS` and no reference
     counting, so the loop may not create arrays: its caller allocates them). Without
     numba, ``fn`` itself."""
     if numba is None:                            # pragma: no cover
         return fn
-    return numba.njit(**_OPTIONS, _nrt=False)(fn)
+    return numba.njit(**OPTIONS, _nrt=False)(fn)
 
 
 def compiled_parallel(fn: Any) -> Any:
-    """``fn`` compiled with :data:`_OPTIONS` and ``parallel=True``: its ``prange`` loop
+    """``fn`` compiled with :data:`OPTIONS` and ``parallel=True``: its ``prange`` loop
     runs on numba's threads (the ranges it is given, :func:`parts`)."""
     if numba is None:                            # pragma: no cover
         return fn
-    return numba.njit(**_OPTIONS, parallel=True)(fn)
+    return numba.njit(**OPTIONS, parallel=True)(fn)
 
 
 def numba_threads() -> int:

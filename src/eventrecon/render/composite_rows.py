@@ -82,34 +82,46 @@ def _unit(x: Any) -> Any:
 
 
 @compiled
-def _forward(s: Any, slot: Any, far: Any, sig: Any, col: Any, bg: Any, tau_max: Any,
-             rgb: Any, opacity: Any, depth: Any, weights: Any) -> None:
-    """``rgb [n, 3]``, ``opacity [n]``, ``depth [n]`` and ``weights [n, K]`` of the rays
-    (module docstring); ``s [n, K]`` sorted, ``slot [n, K]`` rows of ``sig [M]``,
-    ``col [M, 3]``. A sample with a row adds ``w c`` even at ``w = 0``, so a non-finite
-    colour or density makes the ray NaN, as in PyTorch's compositing."""
-    k, zero, one = s.shape[1], np.float32(0), np.float32(1)
-    for r in range(s.shape[0]):
-        excl, trans, c0, c1, c2, dep = 0.0, 1.0, 0.0, 0.0, 0.0, 0.0     # float64 sums
-        for q in range(k):
-            weights[r, q] = zero
-            if slot[r, q] == -1:
-                continue
+def _ray(s: Any, slot: Any, far: Any, sig: Any, col: Any, tau_max: Any, r: int,
+         after: Any) -> tuple:
+    """Ray ``r`` front to back: ``after[q] = T_{q+1}`` (float64) and the float64 sums
+    ``(Σ w c₀, Σ w c₁, Σ w c₂, Σ w s)`` with ``w = float32(T_q − T_{q+1})``. A sample with
+    a row adds ``w c`` even at ``w = 0``, so a non-finite colour or density makes the ray
+    NaN, as in PyTorch's compositing."""
+    k, zero = s.shape[1], np.float32(0)
+    excl, trans, c0, c1, c2, dep = 0.0, 1.0, 0.0, 0.0, 0.0, 0.0     # float64 sums
+    for q in range(k):
+        if slot[r, q] != -1:
             sigma, x0, x1, x2 = _read(slot[r, q], sig, col, zero)
             end = s[r, q + 1] if q + 1 < k else far[r]
             tau = _tau(sigma, end - s[r, q], tau_max)
             wt = zero
             if tau != zero:                     # w = T_q − T_{q+1}, both in float64
                 excl += tau
-                after = np.exp(-excl)
-                wt = np.float32(trans - after)
-                trans = after
-            weights[r, q] = wt
+                before, trans = trans, np.exp(-excl)
+                wt = np.float32(before - trans)
             c0 += wt * x0
             c1 += wt * x1
             c2 += wt * x2
             dep += wt * s[r, q]
-        t_last = np.float32(trans)
+        after[q] = trans
+    return c0, c1, c2, dep
+
+
+@compiled
+def _forward(s: Any, slot: Any, far: Any, sig: Any, col: Any, bg: Any, tau_max: Any,
+             rgb: Any, opacity: Any, depth: Any, weights: Any, after: Any) -> None:
+    """``rgb [n, 3]``, ``opacity [n]``, ``depth [n]`` and ``weights [n, K]`` of the rays
+    (module docstring); ``s [n, K]`` sorted, ``slot [n, K]`` rows of ``sig [M]``,
+    ``col [M, 3]``; ``after [K]`` float64 scratch (:func:`_ray`)."""
+    k, one = s.shape[1], np.float32(1)
+    for r in range(s.shape[0]):
+        c0, c1, c2, dep = _ray(s, slot, far, sig, col, tau_max, r, after)
+        before = 1.0
+        for q in range(k):
+            weights[r, q] = np.float32(before - after[q])
+            before = after[q]
+        t_last = np.float32(after[k - 1])
         rgb[r, 0] = _unit(np.float32(c0) + t_last * bg[r, 0])
         rgb[r, 1] = _unit(np.float32(c1) + t_last * bg[r, 1])
         rgb[r, 2] = _unit(np.float32(c2) + t_last * bg[r, 2])
@@ -122,26 +134,12 @@ def _backward(s: Any, slot: Any, far: Any, sig: Any, col: Any, bg: Any, tau_max:
               g_rgb: Any, g_opacity: Any, g_depth: Any, g_sig: Any, g_col: Any,
               after: Any) -> None:
     """``g_sig [M]``, ``g_col [M, 3]`` (zero on entry; masked rows keep 0) from the
-    outputs' gradients (module docstring); ``after [K]`` float64 scratch: the
-    transmittance after each sample."""
+    outputs' gradients (module docstring); ``after [K]`` float64 scratch (:func:`_ray`,
+    the forward pass again)."""
     k, zero, one = s.shape[1], np.float32(0), np.float32(1)
     for r in range(s.shape[0]):
-        excl, trans, c0, c1, c2 = 0.0, 1.0, 0.0, 0.0, 0.0       # the forward pass again
-        for q in range(k):
-            if slot[r, q] != -1:
-                sigma, x0, x1, x2 = _read(slot[r, q], sig, col, zero)
-                end = s[r, q + 1] if q + 1 < k else far[r]
-                tau = _tau(sigma, end - s[r, q], tau_max)
-                wt = zero
-                if tau != zero:
-                    excl += tau
-                    before, trans = trans, np.exp(-excl)
-                    wt = np.float32(before - trans)
-                c0 += wt * x0
-                c1 += wt * x1
-                c2 += wt * x2
-            after[q] = trans
-        t_last = np.float32(trans)
+        c0, c1, c2, _ = _ray(s, slot, far, sig, col, tau_max, r, after)
+        t_last = np.float32(after[k - 1])
         # the clamp of C to [0, 1] passes the gradient where C is inside, bounds included
         pre = (np.float32(c0) + t_last * bg[r, 0], np.float32(c1) + t_last * bg[r, 1],
                np.float32(c2) + t_last * bg[r, 2])
@@ -176,13 +174,14 @@ def _backward(s: Any, slot: Any, far: Any, sig: Any, col: Any, bg: Any, tau_max:
 
 @compiled_parallel
 def _forward_parts(s: Any, slot: Any, far: Any, sig: Any, col: Any, bg: Any, tau_max: Any,
-                   rgb: Any, opacity: Any, depth: Any, weights: Any, p: int) -> None:
-    """:func:`_forward` on ``p`` equal ranges of the rays at once."""
-    n = s.shape[0]
+                   rgb: Any, opacity: Any, depth: Any, weights: Any, after: Any) -> None:
+    """:func:`_forward` on ``P`` equal ranges of the rays at once (``after [P, K]``: each
+    range's scratch)."""
+    n, p = s.shape[0], after.shape[0]
     for part in prange(p):
         a, b = n * part // p, n * (part + 1) // p
         _forward(s[a:b], slot[a:b], far[a:b], sig, col, bg[a:b], tau_max, rgb[a:b],
-                 opacity[a:b], depth[a:b], weights[a:b])
+                 opacity[a:b], depth[a:b], weights[a:b], after[part])
 
 
 @compiled_parallel
@@ -212,7 +211,7 @@ class CompositeRows(torch.autograd.Function):
         weights = torch.empty(n, k)
         args = [x.numpy() for x in (s, slot, far, sig, col, bg)]
         _forward_parts(*args, _tau_max(), rgb.numpy(), opacity.numpy(), depth.numpy(),
-                       weights.numpy(), parts(n, RAYS_PER_RANGE))
+                       weights.numpy(), np.empty((parts(n, RAYS_PER_RANGE), k)))
         ctx.save_for_backward(sig, col, s, slot, far, bg)
         ctx.mark_non_differentiable(weights)
         return rgb, opacity, depth, weights

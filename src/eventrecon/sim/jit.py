@@ -27,21 +27,24 @@ import itertools
 from collections.abc import Callable
 from pathlib import Path
 
-from eventrecon.render.compiled import GRAIN, numba_threads, parts
+from eventrecon.render.compiled import (
+    AVAILABLE,
+    GRAIN,
+    OPTIONS,
+    compiled_parallel,
+    numba_threads,
+    parts,
+    prange,
+)
 
 try:
     import numba
 except ImportError:                              # pragma: no cover - numba is a dependency
     numba = None
 
-#: ``numba.prange`` (``range`` without numba): the parallel loop of :func:`njit_parallel`.
-prange = range if numba is None else numba.prange
-
 __all__ = ["AVAILABLE", "SOURCES", "drop_stale_cache", "njit", "njit_borrowing",
            "njit_inline", "njit_parallel", "numba_threads", "parts", "prange", "GRAIN"]
 
-#: Whether numba could be imported.
-AVAILABLE = numba is not None
 #: The modules of this package whose compiled functions call (inline) one another, and
 #: ``crossing.py``, whose constants the compiled crossing time reads.
 SOURCES = ("jit.py", "compiled_paths.py", "compiled_core.py", "merge.py", "crossing.py")
@@ -75,17 +78,13 @@ if AVAILABLE:
     drop_stale_cache()
 
 
-#: The options of every compiled function here (module docstring).
-_OPTIONS = {"cache": True, "error_model": "numpy", "nogil": True}
-
-
 def njit(fn: Callable, inline: bool = False, nrt: bool = True) -> Callable:
     """``fn`` compiled (see the module docstring); ``inline``: at its call sites, for
     small per-element helpers whose call would cost more than their work; ``nrt=False``:
     without reference counting (:func:`njit_borrowing`)."""
     if numba is None:                            # pragma: no cover
         return fn
-    return numba.njit(**_OPTIONS, _nrt=nrt, inline="always" if inline else "never")(fn)
+    return numba.njit(**OPTIONS, _nrt=nrt, inline="always" if inline else "never")(fn)
 
 
 def njit_inline(fn: Callable) -> Callable:
@@ -98,9 +97,6 @@ def njit_borrowing(fn: Callable) -> Callable:
     return njit(fn, nrt=False)
 
 
-def njit_parallel(fn: Callable) -> Callable:
-    """:func:`njit` with ``parallel=True``: its ``prange`` loop runs on numba's threads (a
-    decorator; the loops it splits, :func:`parts`)."""
-    if numba is None:                            # pragma: no cover
-        return fn
-    return numba.njit(**_OPTIONS, parallel=True)(fn)
+#: :func:`~eventrecon.render.compiled.compiled_parallel`: ``parallel=True``, its ``prange``
+#: loop on numba's threads (the loops it splits, :func:`parts`).
+njit_parallel = compiled_parallel
