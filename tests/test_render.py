@@ -76,8 +76,9 @@ CYL = Cylinder(0.5, -0.75, 0.25)
         ([0, -1.75, -1], [0, 1, 1], 1.0, (1.0 * math.sqrt(2), 1.5 * math.sqrt(2))),
     ],
 )
-def test_cylinder_interval_hand_computed(o, d, scale, expected) -> None:
-    near, far, hit = CYL.ray_interval(*_ray(o, d), radius_scale=scale)
+@pytest.mark.parametrize("compiled", [True, False])
+def test_cylinder_interval_hand_computed(o, d, scale, expected, compiled) -> None:
+    near, far, hit = CYL.ray_interval(*_ray(o, d), radius_scale=scale, compiled=compiled)
     assert bool(hit[0])
     assert near.item() == pytest.approx(expected[0], abs=1e-12)
     assert far.item() == pytest.approx(expected[1], abs=1e-12)
@@ -103,8 +104,9 @@ def test_cylinder_without_clipping_is_cut_by_the_unit_sphere() -> None:
         ([0.0, 0.0, 0.0], [0, 1, 0], 0.0),    # on the axis, zero radius
     ],
 )
-def test_cylinder_misses_are_flagged_with_finite_equal_ends(o, d, scale) -> None:
-    near, far, hit = CYL.ray_interval(*_ray(o, d), radius_scale=scale)
+@pytest.mark.parametrize("compiled", [True, False])
+def test_cylinder_misses_are_flagged_with_finite_equal_ends(o, d, scale, compiled) -> None:
+    near, far, hit = CYL.ray_interval(*_ray(o, d), radius_scale=scale, compiled=compiled)
     assert not bool(hit[0])
     assert near.item() == far.item() == 0.0
 
@@ -129,6 +131,42 @@ def test_cylinder_interval_matches_brute_force_march() -> None:
     assert torch.equal(hit[long_enough | ~any_in], any_in[long_enough | ~any_in])
     assert float((near - first)[any_in].abs().max()) <= step
     assert float((far - last)[any_in].abs().max()) <= step
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("cylinder", [CYL, Cylinder(1.0, -1.0, 1.0)])
+def test_cylinder_compiled_loop_equals_the_tensor_form(dtype, cylinder, monkeypatch) -> None:
+    """The compiled loop against the tensor form on 40 000 random rays with the edge
+    cases (parallel to the axis, horizontal, zero, NaN and infinite directions): the same
+    hits, the ends within one rounding of the square root (torch's vectorised ``sqrt`` is
+    not always correctly rounded, ``math.sqrt`` is); a ray that needs a gradient takes the
+    tensor form."""
+    import eventrecon.render.clipping as clipping
+
+    calls = []
+    kernel = clipping._intervals
+    monkeypatch.setattr(clipping, "_intervals", lambda *a: (calls.append(1), kernel(*a))[1])
+    gen = torch.Generator().manual_seed(3)
+    o = 1.5 * torch.randn(40_000, 3, generator=gen, dtype=dtype)
+    d = torch.randn(40_000, 3, generator=gen, dtype=dtype)
+    d[:500, 1] = 0.0                                         # horizontal
+    d[500:1000, 0], d[500:1000, 2] = 0.0, 0.0                # parallel to the axis
+    o[1000:1100], d[1100:1200, 0] = float("nan"), float("inf")
+    d[1200:1300] = 0.0
+    o[1300:1400, 1] = torch.linspace(-1.0, 1.0, 100, dtype=dtype)
+    d[1300:1400] = torch.tensor([1.0, 0.0, 0.0], dtype=dtype)   # through the slab's faces
+    for scale in (1.0, 0.5, 0.0):
+        near, far, hit = cylinder.ray_interval(o, d, scale)
+        ref = cylinder.ray_interval(o, d, scale, compiled=False)
+        assert near.dtype == far.dtype == dtype and torch.equal(hit, ref[2])
+        tol = 4 * torch.finfo(dtype).eps
+        for a, b in ((near, ref[0]), (far, ref[1])):
+            assert torch.allclose(a, b, rtol=tol, atol=tol)
+            assert float((a != b).double().mean()) < 1e-3       # mostly the same bits
+        assert int(hit.sum()) > (100 if scale else -1) and not bool(hit[1000:1300].any())
+    assert len(calls) == 3
+    grad = cylinder.ray_interval(o[:10].requires_grad_(True), d[:10])
+    assert len(calls) == 3 and grad[0].requires_grad
 
 
 def test_cylinder_rejects_bad_parameters() -> None:

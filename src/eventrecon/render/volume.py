@@ -332,7 +332,7 @@ class Renderer(nn.Module):
             raise InputError("renderer", "o/d/t/bg", "shapes [N,3], [N,3], [N,1], [N,3]",
                              f"{tuple(o.shape)}, {tuple(d.shape)}, {tuple(t.shape)}, "
                              f"{tuple(bg.shape)}")
-        near, far, hit = self.cylinder.ray_interval(o, d)
+        near, far, hit = self.cylinder.ray_interval(o, d, compiled=self.compiled)
         idx = hit.nonzero().squeeze(1)
         if idx.numel() == n:
             return self._render_hit(field, o, d, t, bg, near, far, perturb, gen, copies)
