@@ -19,6 +19,7 @@ The reference signal ``E_ref→1 = E(t_ref, t1)``, negated when ``t_ref > t1``, 
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -64,7 +65,13 @@ def rays_per_view(n_rays: int, n_views: int, gen: torch.Generator) -> Tensor:
     return counts
 
 
-def _distinct(pool: Tensor, group: Tensor, distinct: Tensor, gen: torch.Generator) -> Tensor:
+def _draws(n: int, gen: torch.Generator) -> np.ndarray:
+    """``n`` uniform float64 draws of ``gen`` (on its device), as a CPU array."""
+    return _rand(n, gen).cpu().numpy()
+
+
+def _distinct(pool: np.ndarray, group: np.ndarray, distinct: np.ndarray,
+              gen: torch.Generator) -> np.ndarray:
     """Draw ``j`` uniform over ``range(pool[j])``; no index twice within a group flagged
     ``distinct``.
 
@@ -72,38 +79,43 @@ def _distinct(pool: Tensor, group: Tensor, distinct: Tensor, gen: torch.Generato
     until none are left. The procedure treats every index alike, so each set of distinct
     indices is equally likely: the same law as drawing without replacement. A group that
     asks for more than half its pool takes the first indices of a random permutation
-    instead (redrawing would need about ``pool·ln(pool)`` draws there).
+    instead (redrawing would need about ``pool·ln(pool)`` draws there). The draws come
+    from ``gen`` (uniforms, and ``randperm`` for such a group), in that order; the
+    bookkeeping of a few hundred indices runs in NumPy, whose calls on small arrays cost
+    a microsecond where a tensor operation costs ten.
 
     Args:
         pool: ``[K]`` int64 sizes (≥ 1); a distinct group must not ask for more than its
             pool holds.
         group: ``[K]`` int64 group ids.
         distinct: ``[K]`` bool, constant within a group.
-        gen: random generator (the draws are on its device).
+        gen: random generator.
 
     Returns:
-        ``[K]`` int64 indices on ``gen``'s device.
+        ``[K]`` int64 indices.
     """
-    pool, group, distinct = (x.to(gen.device) for x in (pool, group, distinct))
-    idx = (_rand(pool.numel(), gen) * pool).long().clamp_max(pool - 1)
-    if idx.numel() < 2:
+    idx = np.minimum((_draws(pool.size, gen) * pool).astype(np.int64), pool - 1)
+    if idx.size < 2:
         return idx
-    asked = torch.bincount(group[distinct], minlength=int(group.max()) + 1)   # per group
+    asked = np.bincount(group[distinct], minlength=int(group.max()) + 1)   # per group
     heavy = distinct & (2 * asked[group] > pool)
-    if bool(heavy.any()):                        # most of a pool: a permutation's first k
+    if heavy.any():                              # most of a pool: a permutation's first k
         distinct = distinct & ~heavy
-        for g in torch.unique(group[heavy]).tolist():
-            members = torch.nonzero(group == g).squeeze(1)
-            idx[members] = torch.randperm(int(pool[members[0]]), generator=gen,
-                                          device=gen.device)[: members.numel()]
+        for g in np.unique(group[heavy]).tolist():
+            members = np.flatnonzero(group == g)
+            perm = torch.randperm(int(pool[members[0]]), generator=gen, device=gen.device)
+            idx[members] = perm[: members.size].cpu().numpy()
     span = int(pool.max()) + 1
     while True:
-        order = torch.sort(group * span + idx, stable=True)
-        again = order.indices[1:][order.values[1:] == order.values[:-1]]
+        key = group * span + idx
+        order = np.argsort(key, kind="stable")
+        ordered = key[order]
+        again = order[1:][ordered[1:] == ordered[:-1]]
         again = again[distinct[again]]
-        if again.numel() == 0:
+        if again.size == 0:
             return idx
-        idx[again] = (_rand(again.numel(), gen) * pool[again]).long().clamp_max(pool[again] - 1)
+        idx[again] = np.minimum((_draws(again.size, gen) * pool[again]).astype(np.int64),
+                                pool[again] - 1)
 
 
 def sample_pixels(event_map: Tensor, counts: Tensor, neg_ratio: float,
@@ -114,7 +126,8 @@ def sample_pixels(event_map: Tensor, counts: Tensor, neg_ratio: float,
     ``⌊counts[v]·(1 − neg_ratio)⌋`` of them on its pixels with ``event_map ≠ 0`` (without
     replacement unless it has fewer such pixels; none if it has none) and the rest uniform
     over its ``H·W`` pixels without replacement (with, where a view asks for more rays than
-    it has pixels). The two sets may share pixels. Vectorised over views.
+    it has pixels). The two sets may share pixels. Vectorised over views; the map is read
+    once, on the CPU.
 
     Args:
         event_map: ``[V, H, W]`` E(t0, t1) values or a bool "has events" map.
@@ -131,36 +144,32 @@ def sample_pixels(event_map: Tensor, counts: Tensor, neg_ratio: float,
     if not 0.0 <= neg_ratio <= 1.0:
         raise InputError("sampling", "neg_ratio", "a fraction in [0, 1]", neg_ratio)
     n_views, height, width = event_map.shape
-    counts = counts.to(torch.int64).cpu()
-    if counts.shape != (n_views,) or bool((counts < 0).any()):
+    count = counts.to(torch.int64).cpu().numpy()
+    if count.shape != (n_views,) or bool((count < 0).any()):
         raise InputError("sampling", "counts", f"[{n_views}] non-negative counts",
-                         counts.tolist())
-    device = event_map.device
+                         count.tolist())
     hw = height * width
-    n_pos = torch.floor(counts.double() * (1.0 - neg_ratio)).to(torch.int64)  # int(n·(1−r))
-    has_ev = (event_map != 0).reshape(n_views, hw).to(gen.device)
-    n_ev = has_ev.sum(1).cpu()  # [V] event pixels per view
-    n_pos = torch.where(n_ev > 0, n_pos, 0)  # views without events draw uniformly
-    n_uni = counts - n_pos
-    views = torch.arange(n_views)
-    v_uni = torch.repeat_interleave(views, n_uni)
-    v_pos = torch.repeat_interleave(views, n_pos)
+    n_pos = np.floor(count.astype(np.float64) * (1.0 - neg_ratio)).astype(np.int64)
+    has_ev = (event_map != 0).reshape(n_views, hw).cpu().numpy()
+    n_ev = has_ev.sum(1)                         # [V] event pixels per view
+    n_pos = np.where(n_ev > 0, n_pos, 0)         # views without events draw uniformly
+    n_uni = count - n_pos
+    views = np.arange(n_views)
+    v_uni, v_pos = np.repeat(views, n_uni), np.repeat(views, n_pos)
     # one draw: uniform rays index the view's pixels (group v), event rays its event
     # pixels (group V + v)
-    pool = torch.cat([torch.full_like(v_uni, hw), n_ev[v_pos]])
-    group = torch.cat([v_uni, n_views + v_pos])
-    distinct = torch.cat([(n_uni <= hw)[v_uni], (n_pos <= n_ev)[v_pos]])
+    pool = np.concatenate([np.full(v_uni.size, hw), n_ev[v_pos]])
+    group = np.concatenate([v_uni, n_views + v_pos])
+    distinct = np.concatenate([(n_uni <= hw)[v_uni], (n_pos <= n_ev)[v_pos]])
     k = _distinct(pool, group, distinct, gen)
-    flat_uni = k[: v_uni.numel()]
-    ev_flat = torch.nonzero(has_ev.reshape(-1)).squeeze(1)  # sorted by view, then pixel
-    ev_start = (torch.cumsum(n_ev, 0) - n_ev).to(gen.device)
-    v_pos_g = v_pos.to(gen.device)
-    flat_pos = ev_flat[ev_start[v_pos_g] + k[v_uni.numel():]] - v_pos_g * hw
+    ev_flat = np.flatnonzero(has_ev)             # sorted by view, then pixel
+    ev_start = np.cumsum(n_ev) - n_ev
+    flat_pos = ev_flat[ev_start[v_pos] + k[v_uni.size:]] - v_pos * hw
     # Group by view, uniform rays first within each view.
-    view = torch.cat([v_uni, v_pos]).to(gen.device)
-    flat = torch.cat([flat_uni, flat_pos])
-    order = torch.sort(view, stable=True).indices
-    view, flat = view[order].to(device), flat[order].to(device)
+    view = np.concatenate([v_uni, v_pos])
+    flat = np.concatenate([k[: v_uni.size], flat_pos])
+    order = np.argsort(view, kind="stable")
+    view, flat = (torch.from_numpy(x[order]).to(event_map.device) for x in (view, flat))
     return view, flat // width, flat % width
 
 
