@@ -44,7 +44,7 @@ import torch
 from torch import Tensor
 
 import eventrecon.sim.jit as jit
-from baselines.interp import channel_rows, corners, vertex_coords
+from baselines.interp import channel_rows, vertex_corners
 from eventrecon.errors import InputError
 from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline, njit_parallel, prange
 
@@ -254,8 +254,7 @@ def cp_rank_sum(lines: Sequence[Tensor], coords: Tensor, align_corners: Sequence
         raise InputError("baselines.cp_fused", "rank",
                          f"a divisor of the lines' {lines[0].shape[0]} channels", rank)
     sizes = tuple(int(line.shape[1]) for line in lines)
-    p = vertex_coords(coords.detach(), sizes, align_corners[0], padding)
-    lower, weights = corners(p)
+    lower, weights = vertex_corners(coords, sizes, align_corners[0], padding)
     if torch.is_grad_enabled() and any(line.requires_grad for line in lines):
         return _CPRankSum.apply(*lines, lower, weights, int(rank))
     return _read(lines, lower, weights, int(rank))

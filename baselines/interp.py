@@ -43,6 +43,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -57,7 +58,8 @@ from eventrecon.sim.jit import (
     prange,
 )
 
-__all__ = ["channel_rows", "corners", "interpolate", "supported", "vertex_coords"]
+__all__ = ["channel_rows", "corners", "interpolate", "supported", "vertex_coords",
+           "vertex_corners"]
 
 
 def vertex_coords(coords: Tensor, sizes: tuple[int, ...], align_corners: bool,
@@ -96,6 +98,71 @@ def corners(p: Tensor) -> tuple[Tensor, Tensor]:
     frac = p - lo
     lower = torch.nan_to_num(lo, nan=-2.0, posinf=-2.0, neginf=-2.0).clamp(-2, 2 ** 31)
     return lower.long(), torch.stack([1 - frac, frac], dim=-1).contiguous()
+
+
+@njit_borrowing
+def _vertex_corners(coords: Any, sizes: Any, align: bool, border: bool, units: Any,
+                    lower: Any, weights: Any) -> None:
+    """:func:`vertex_coords` then :func:`corners`, point by point, with their
+    expressions in the coordinates' dtype (``sizes``: the vertex counts and ``units``:
+    1, 2 and 2³¹, both in that dtype)."""
+    one, two, top = units[0], units[1], units[2]
+    zero = one - one
+    for n in range(coords.shape[0]):
+        for k in range(coords.shape[1]):
+            c, r = coords[n, k], sizes[k]
+            if align:
+                p = (c + one) / two * (r - one)
+            else:
+                p = ((c + one) * r - one) / two
+            if border:
+                if p < zero:
+                    p = zero
+                if p > r - one:
+                    p = r - one
+            lo = np.floor(p)
+            frac = p - lo
+            if not math.isfinite(lo) or lo < -two:
+                lower[n, k] = -2
+            elif lo > top:
+                lower[n, k] = 2 ** 31
+            else:
+                lower[n, k] = int(lo)
+            weights[n, k, 0] = one - frac
+            weights[n, k, 1] = frac
+
+
+@njit_parallel
+def _vertex_corners_parts(coords: Any, sizes: Any, align: bool, border: bool, units: Any,
+                          lower: Any, weights: Any, p: int) -> None:
+    """:func:`_vertex_corners` on ``p`` equal ranges of the points at once."""
+    n = coords.shape[0]
+    for k in prange(p):
+        a, b = n * k // p, n * (k + 1) // p
+        _vertex_corners(coords[a:b], sizes, align, border, units, lower[a:b], weights[a:b])
+
+
+def vertex_corners(coords: Tensor, sizes: tuple[int, ...], align_corners: bool,
+                   padding: str) -> tuple[Tensor, Tensor]:
+    """``corners(vertex_coords(coords, …))``: normalised ``coords [N, d]`` → the lower
+    corner ``[N, d]`` (int64) and the weights ``[N, d, 2]``. On a CPU one compiled pass
+    (:func:`_vertex_corners`) with the same expressions, so the same bits, where the
+    tensor form takes a dozen passes over ``[N, d]``."""
+    if not (AVAILABLE and coords.device.type == "cpu"
+            and coords.dtype in (torch.float32, torch.float64)):
+        return corners(vertex_coords(coords, sizes, align_corners, padding))
+    arr = coords.detach().contiguous().numpy()
+    dtype = arr.dtype
+    lower = torch.empty(coords.shape, dtype=torch.long)
+    weights = coords.new_empty(*coords.shape, 2)
+    args = (arr, np.array(sizes, dtype=dtype), bool(align_corners), padding == "border",
+            np.array([1.0, 2.0, 2.0 ** 31], dtype=dtype), lower.numpy(), weights.numpy())
+    p = parts(arr.shape[0])
+    if p == 1:
+        _vertex_corners(*args)
+    else:
+        _vertex_corners_parts(*args, p)
+    return lower, weights
 
 
 @njit_inline
@@ -241,8 +308,7 @@ def interpolate(grid: Tensor, coords: Tensor, align_corners: bool = True,
                          list(coords.shape))
     if not supported(grid, coords):
         return None
-    p = vertex_coords(coords.detach(), tuple(grid.shape[1:]), align_corners, padding)
-    lower, weights = corners(p)
+    lower, weights = vertex_corners(coords, tuple(grid.shape[1:]), align_corners, padding)
     if grid.requires_grad and torch.is_grad_enabled():
         return _Interpolate.apply(grid, lower, weights)
     return _read(grid, lower, weights)

@@ -260,3 +260,46 @@ def test_split_between_two_threads_same_values_and_the_halves_gradients_summed(s
             assert torch.equal(interpolate(grid, coords, False, "zeros"), one)
     assert torch.equal(two, one) and torch.equal(g_two, halves)
     assert {k: len(v) for k, v in split.items()} == {"_gather_parts": 2, "_scatter_parts": 1}
+
+
+def _bits(x: torch.Tensor) -> torch.Tensor:
+    """The values' bit patterns (signed zeros and NaN payloads told apart)."""
+    return x.contiguous().view(torch.int32 if x.dtype == torch.float32 else torch.int64)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("align,padding", [(True, "zeros"), (False, "zeros"), (True, "border"),
+                                           (False, "border")])
+def test_vertex_corners_compiled_equal_the_tensor_form_to_the_bit(dtype, align, padding):
+    """The compiled pass from normalised coordinates to corners and weights against
+    ``corners(vertex_coords(…))``, on random points inside and outside the grid and on
+    the edges, NaN, ±inf, huge values and −0: the same lower corners and the same bits."""
+    from baselines.interp import vertex_coords, vertex_corners
+
+    g = torch.Generator().manual_seed(5)
+    c = torch.rand(20_000, 3, generator=g, dtype=dtype) * 2.6 - 1.3
+    c[:4] = torch.tensor([[-1.0, 1.0, 0.0], [1.0, -1.0, -0.0], [0.5, 0.25, -0.5],
+                          [-1.0, -1.0, -1.0]], dtype=dtype)
+    c[4, 0], c[5, 1], c[6, 2], c[7, 0], c[8, 1] = (float("nan"), float("inf"), -float("inf"),
+                                                    1e30, -1e30)
+    for sizes in ((128, 24, 7), (2, 3, 500)):
+        for points in (c, c[:, [2, 0]]):                       # a gathered copy too
+            low, w = vertex_corners(points, sizes[:points.shape[1]], align, padding)
+            ref_low, ref_w = corners(vertex_coords(points, sizes[:points.shape[1]], align,
+                                                   padding))
+            assert low.dtype == torch.long and w.dtype == dtype
+            assert torch.equal(low, ref_low) and torch.equal(_bits(w), _bits(ref_w))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_box_normalize_compiled_equals_the_tensor_form_to_the_bit(dtype, monkeypatch):
+    g = torch.Generator().manual_seed(6)
+    xyz = torch.randn(5000, 3, generator=g, dtype=dtype)
+    t = torch.rand(5000, 1, generator=g)                         # float32 times, cast
+    xyz[0, 0], xyz[1, 1], xyz[2, 2] = float("nan"), float("inf"), -0.0
+    lo, hi = torch.tensor([-0.5, -0.75, -0.5]), torch.tensor([0.5, 0.25, 0.5])
+    fast = grids.box_normalize(xyz, t, lo, hi)
+    monkeypatch.setattr(grids, "AVAILABLE", False)
+    slow = grids.box_normalize(xyz, t, lo, hi)
+    assert fast.dtype == slow.dtype == dtype and torch.equal(_bits(fast), _bits(slow))
+    assert fast[3:].abs().max() < 10                               # finite elsewhere
