@@ -102,16 +102,20 @@ def box_normalize(xyz: Tensor, t: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
 
 
 def sample_points(grid: Tensor, coords: Tensor, align_corners: bool = True,
-                  padding: str = "border") -> Tensor:
+                  padding: str = "border", axes: Sequence[int] | None = None) -> Tensor:
     """:func:`sample_grid`, channel-last: ``[N, C]``.
 
     A grid of 1–3 axes on the CPU goes to the compiled loops of :mod:`baselines.interp`
     (channel-last reads; the grid's gradient only). Anything else (a GPU, a grid of four
     axes, coordinates that need a gradient, mixed dtypes, no numba) goes to
     ``grid_sample``, on a CPU with its points split into :func:`cpu_batches` batch
-    entries (:func:`sample_grid_split`); the result is then a transposed view."""
-    out = interpolate(grid, coords, align_corners, padding)
+    entries (:func:`sample_grid_split`); the result is then a transposed view. With
+    ``axes``, ``coords [N, D]`` and grid axis ``k`` reads column ``axes[k]`` (no gather on
+    the compiled path)."""
+    out = interpolate(grid, coords, align_corners, padding, axes)
     if out is None:
+        if axes is not None:
+            coords = coords[:, list(axes)]
         k = cpu_batches(coords.shape[0], grid)
         out = unsplit(sample_grid_split(grid, coords, k, align_corners, padding),
                       coords.shape[0]).t()
@@ -322,7 +326,7 @@ class FactorGrids(nn.Module):
     def forward(self, coords: Tensor, channels: int | None = None) -> list[Tensor]:
         """Sample every factor (:meth:`leading`): ``coords [N, 4]`` -> list of ``[N, C]``
         (:func:`sample_points`)."""
-        return [sample_points(f, coords[:, list(ax)], ac, self.padding)
+        return [sample_points(f, coords, ac, self.padding, ax)
                 for f, ax, ac in zip(self.leading(channels), self.axes, self.align_corners)]
 
     def upsample(self, shapes: Sequence[Sequence[int]]) -> None:

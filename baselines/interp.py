@@ -41,6 +41,7 @@ gradient: where one is asked for, or numba is missing, :func:`interpolate` retur
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -101,16 +102,17 @@ def corners(p: Tensor) -> tuple[Tensor, Tensor]:
 
 
 @njit_borrowing
-def _vertex_corners(coords: Any, sizes: Any, align: bool, border: bool, units: Any,
-                    lower: Any, weights: Any) -> None:
-    """:func:`vertex_coords` then :func:`corners`, point by point, with their
-    expressions in the coordinates' dtype (``sizes``: the vertex counts and ``units``:
+def _vertex_corners(coords: Any, axes: Any, sizes: Any, align: bool, border: bool,
+                    units: Any, lower: Any, weights: Any) -> None:
+    """:func:`vertex_coords` then :func:`corners`, point by point, of the columns
+    ``axes`` of ``coords``, with their expressions in the coordinates' dtype (``sizes``:
+    the vertex counts and ``units``:
     1, 2 and 2³¹, both in that dtype)."""
     one, two, top = units[0], units[1], units[2]
     zero = one - one
     for n in range(coords.shape[0]):
-        for k in range(coords.shape[1]):
-            c, r = coords[n, k], sizes[k]
+        for k in range(axes.shape[0]):
+            c, r = coords[n, axes[k]], sizes[k]
             if align:
                 p = (c + one) / two * (r - one)
             else:
@@ -133,29 +135,34 @@ def _vertex_corners(coords: Any, sizes: Any, align: bool, border: bool, units: A
 
 
 @njit_parallel
-def _vertex_corners_parts(coords: Any, sizes: Any, align: bool, border: bool, units: Any,
-                          lower: Any, weights: Any, p: int) -> None:
+def _vertex_corners_parts(coords: Any, axes: Any, sizes: Any, align: bool, border: bool,
+                          units: Any, lower: Any, weights: Any, p: int) -> None:
     """:func:`_vertex_corners` on ``p`` equal ranges of the points at once."""
     n = coords.shape[0]
     for k in prange(p):
         a, b = n * k // p, n * (k + 1) // p
-        _vertex_corners(coords[a:b], sizes, align, border, units, lower[a:b], weights[a:b])
+        _vertex_corners(coords[a:b], axes, sizes, align, border, units, lower[a:b],
+                        weights[a:b])
 
 
 def vertex_corners(coords: Tensor, sizes: tuple[int, ...], align_corners: bool,
-                   padding: str) -> tuple[Tensor, Tensor]:
-    """``corners(vertex_coords(coords, …))``: normalised ``coords [N, d]`` → the lower
-    corner ``[N, d]`` (int64) and the weights ``[N, d, 2]``. On a CPU one compiled pass
+                   padding: str, axes: Sequence[int] | None = None) -> tuple[Tensor, Tensor]:
+    """``corners(vertex_coords(coords[:, axes], …))``: normalised coordinates → the lower
+    corner ``[N, d]`` (int64) and the weights ``[N, d, 2]`` of the ``d`` columns ``axes``
+    (all of ``coords [N, d]`` when ``None``). On a CPU one compiled pass
     (:func:`_vertex_corners`) with the same expressions, so the same bits, where the
-    tensor form takes a dozen passes over ``[N, d]``."""
+    tensor form takes a gather and a dozen passes over ``[N, d]``."""
+    cols = list(range(coords.shape[1])) if axes is None else [int(a) for a in axes]
     if not (AVAILABLE and coords.device.type == "cpu"
             and coords.dtype in (torch.float32, torch.float64)):
-        return corners(vertex_coords(coords, sizes, align_corners, padding))
+        picked = coords if axes is None else coords[:, cols]
+        return corners(vertex_coords(picked, sizes, align_corners, padding))
     arr = coords.detach().contiguous().numpy()
     dtype = arr.dtype
-    lower = torch.empty(coords.shape, dtype=torch.long)
-    weights = coords.new_empty(*coords.shape, 2)
-    args = (arr, np.array(sizes, dtype=dtype), bool(align_corners), padding == "border",
+    lower = torch.empty(coords.shape[0], len(cols), dtype=torch.long)
+    weights = coords.new_empty(coords.shape[0], len(cols), 2)
+    args = (arr, np.array(cols, dtype=np.int64), np.array(sizes, dtype=dtype),
+            bool(align_corners), padding == "border",
             np.array([1.0, 2.0, 2.0 ** 31], dtype=dtype), lower.numpy(), weights.numpy())
     p = parts(arr.shape[0])
     if p == 1:
@@ -294,21 +301,28 @@ def supported(grid: Tensor, coords: Tensor) -> bool:
 
 
 def interpolate(grid: Tensor, coords: Tensor, align_corners: bool = True,
-                padding: str = "zeros") -> Tensor | None:
+                padding: str = "zeros", axes: Sequence[int] | None = None) -> Tensor | None:
     """Multilinear interpolation of ``grid [C, R_0, …]`` at normalised ``coords
-    [N, d]`` → ``[N, C]`` (channel-last), differentiable with respect to ``grid``;
-    ``None`` where :func:`supported` is false (then use ``grid_sample``).
+    [N, d]`` (or at the columns ``axes`` of ``coords [N, D]``, one per grid axis) →
+    ``[N, C]`` (channel-last), differentiable with respect to ``grid``; ``None`` where
+    :func:`supported` is false (then use ``grid_sample``).
 
     Raises:
-        InputError: ``coords`` is not ``[N, d]`` for the grid's ``d`` axes.
+        InputError: ``coords`` is not ``[N, d]`` for the grid's ``d`` axes, or ``axes``
+            does not name ``d`` of its columns.
     """
-    if coords.dim() != 2 or coords.shape[1] != grid.dim() - 1:
+    d = grid.dim() - 1
+    width = coords.shape[1] if coords.dim() == 2 else -1
+    if coords.dim() != 2 or (axes is None and width != d) or (
+            axes is not None and (len(axes) != d or not all(0 <= a < width for a in axes))):
         raise InputError("baselines.interp", "coords",
-                         f"[N, {grid.dim() - 1}] for a grid of shape {list(grid.shape)}",
-                         list(coords.shape))
+                         f"[N, {d}] (or [N, D] and {d} of its columns as axes) for a grid "
+                         f"of shape {list(grid.shape)}",
+                         f"{list(coords.shape)}, axes {None if axes is None else list(axes)}")
     if not supported(grid, coords):
         return None
-    lower, weights = vertex_corners(coords, tuple(grid.shape[1:]), align_corners, padding)
+    lower, weights = vertex_corners(coords, tuple(grid.shape[1:]), align_corners, padding,
+                                    axes)
     if grid.requires_grad and torch.is_grad_enabled():
         return _Interpolate.apply(grid, lower, weights)
     return _read(grid, lower, weights)

@@ -283,11 +283,12 @@ def test_vertex_corners_compiled_equal_the_tensor_form_to_the_bit(dtype, align, 
     c[4, 0], c[5, 1], c[6, 2], c[7, 0], c[8, 1] = (float("nan"), float("inf"), -float("inf"),
                                                     1e30, -1e30)
     for sizes in ((128, 24, 7), (2, 3, 500)):
-        for points in (c, c[:, [2, 0]]):                       # a gathered copy too
-            low, w = vertex_corners(points, sizes[:points.shape[1]], align, padding)
-            ref_low, ref_w = corners(vertex_coords(points, sizes[:points.shape[1]], align,
-                                                   padding))
-            assert low.dtype == torch.long and w.dtype == dtype
+        for points, axes in ((c, None), (c[:, [2, 0]], None), (c, [2, 0])):   # columns too
+            d = points.shape[1] if axes is None else len(axes)
+            low, w = vertex_corners(points, sizes[:d], align, padding, axes)
+            picked = points if axes is None else points[:, axes]
+            ref_low, ref_w = corners(vertex_coords(picked, sizes[:d], align, padding))
+            assert low.dtype == torch.long and w.dtype == dtype and low.shape == (20_000, d)
             assert torch.equal(low, ref_low) and torch.equal(_bits(w), _bits(ref_w))
 
 
@@ -303,3 +304,20 @@ def test_box_normalize_compiled_equals_the_tensor_form_to_the_bit(dtype, monkeyp
     slow = grids.box_normalize(xyz, t, lo, hi)
     assert fast.dtype == slow.dtype == dtype and torch.equal(_bits(fast), _bits(slow))
     assert fast[3:].abs().max() < 10                               # finite elsewhere
+
+
+def test_interpolate_reads_the_named_columns_as_the_gathered_coordinates():
+    """``axes`` reads the grid's coordinates off the columns of ``[N, D]`` instead of a
+    gathered copy: the same values and the same grid gradient, to the bit; axes that do
+    not fit the grid raise one error."""
+    g = torch.Generator().manual_seed(7)
+    grid = grids.channels_last(torch.randn(8, 9, 5, generator=g)).requires_grad_(True)
+    coords = torch.rand(3000, 4, generator=g) * 2.2 - 1.1
+    w = torch.randn(3000, 8, generator=g)
+    outs = [grids.sample_points(grid, coords, True, "zeros", (3, 1)),
+            grids.sample_points(grid, coords[:, [3, 1]], True, "zeros")]
+    grads = [torch.autograd.grad((o * w).sum(), grid)[0] for o in outs]
+    assert torch.equal(outs[0], outs[1]) and torch.equal(grads[0], grads[1])
+    for axes in ((3,), (0, 4), (1, 2, 3)):
+        with pytest.raises(InputError, match="coords"):
+            interpolate(grid, coords, True, "zeros", axes)
