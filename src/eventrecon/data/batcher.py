@@ -117,12 +117,14 @@ class RayBatcher:
         view, row, col = sampling.sample_pixels(event_map, counts, self.neg_ratio, gen)
         pix = (view * H + row) * W + col
         n = pix.shape[0]
-        t0_full = torch.full((n,), t0u, dtype=torch.float64, device=self.device)
-        t1_full = torch.full((n,), t1u, dtype=torch.float64, device=self.device)
-        events = self.events.window(pix, t0_full, t1_full)
         ref = sampling.pick_reference(self.frame_times, t1u, gen, self.n_views)[view]  # [N]
         t_ref_u = self.frame_times[ref].to(torch.float64)
-        events_ref = self.events.window(pix, t_ref_u, t1_full)
+        # V at t1, t0 and t_ref in one query: E(t0, t1) = V(t1) − V(t0) and
+        # E_ref→1 = V(t1) − V(t_ref), as DecayedEvents.window subtracts them
+        ends = torch.tensor([t1u, t0u], dtype=torch.float64, device=self.device)
+        v1, v0, v_ref = self.events.value(
+            pix.repeat(3), torch.cat([ends.repeat_interleave(n), t_ref_u])).split(n)
+        events, events_ref = v1 - v0, v1 - v_ref
         uv = torch.stack([col, row], -1).double()
         uv = sampling.jitter(uv, gen)
         o, d = self.cameras.rays(view.cpu(), uv.cpu())
