@@ -91,11 +91,15 @@ def box_normalize(xyz: Tensor, t: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     t = t.reshape(-1, 1).to(xyz.dtype)
     if (AVAILABLE and xyz.device.type == "cpu" and xyz.dtype in (torch.float32, torch.float64)
             and xyz.dim() == 2 and xyz.shape[1] == 3 and t.shape[0] == xyz.shape[0]
-            and not (torch.is_grad_enabled() and (xyz.requires_grad or t.requires_grad))):
+            and lo.numel() == hi.numel() == 3
+            and not (torch.is_grad_enabled()
+                     and any(x.requires_grad for x in (xyz, t, lo, hi)))):
         out = xyz.new_empty(xyz.shape[0], 4)
         arr = xyz.detach().contiguous().numpy()
-        _box_normalize(arr, t.detach().reshape(-1).contiguous().numpy(), lo.numpy(),
-                       hi.numpy(), np.array([1.0, 2.0], dtype=arr.dtype), out.numpy())
+        _box_normalize(arr, t.detach().reshape(-1).contiguous().numpy(),
+                       lo.detach().reshape(3).contiguous().numpy(),
+                       hi.detach().reshape(3).contiguous().numpy(),
+                       np.array([1.0, 2.0], dtype=arr.dtype), out.numpy())
         return out
     c = 2.0 * (xyz - lo) / (hi - lo) - 1.0
     return torch.cat([c, 2.0 * t - 1.0], dim=-1)

@@ -151,11 +151,21 @@ def vertex_corners(coords: Tensor, sizes: tuple[int, ...], align_corners: bool,
     corner ``[N, d]`` (int64) and the weights ``[N, d, 2]`` of the ``d`` columns ``axes``
     (all of ``coords [N, d]`` when ``None``). On a CPU one compiled pass
     (:func:`_vertex_corners`) with the same expressions, so the same bits, where the
-    tensor form takes a gather and a dozen passes over ``[N, d]``."""
+    tensor form takes a gather and a dozen passes over ``[N, d]``. The coordinates get
+    no gradient.
+
+    Raises:
+        InputError: ``sizes`` and the columns read differ in number, or a column is
+            outside ``coords``.
+    """
     cols = list(range(coords.shape[1])) if axes is None else [int(a) for a in axes]
+    if len(sizes) != len(cols) or not all(0 <= a < coords.shape[1] for a in cols):
+        raise InputError("baselines.interp", "axes/sizes",
+                         f"one size per column read, columns of [N, {coords.shape[1]}]",
+                         f"axes {cols}, sizes {list(sizes)}")
     if not (AVAILABLE and coords.device.type == "cpu"
             and coords.dtype in (torch.float32, torch.float64)):
-        picked = coords if axes is None else coords[:, cols]
+        picked = coords.detach() if axes is None else coords.detach()[:, cols]
         return corners(vertex_coords(picked, sizes, align_corners, padding))
     arr = coords.detach().contiguous().numpy()
     dtype = arr.dtype

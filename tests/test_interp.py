@@ -270,12 +270,17 @@ def _bits(x: torch.Tensor) -> torch.Tensor:
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("align,padding", [(True, "zeros"), (False, "zeros"), (True, "border"),
                                            (False, "border")])
-def test_vertex_corners_compiled_equal_the_tensor_form_to_the_bit(dtype, align, padding):
+def test_vertex_corners_compiled_equal_the_tensor_form_to_the_bit(dtype, align, padding,
+                                                                 monkeypatch):
     """The compiled pass from normalised coordinates to corners and weights against
     ``corners(vertex_coords(…))``, on random points inside and outside the grid and on
     the edges, NaN, ±inf, huge values and −0: the same lower corners and the same bits."""
+    import baselines.interp as interp
     from baselines.interp import vertex_coords, vertex_corners
 
+    calls = []
+    kernel = interp._vertex_corners
+    monkeypatch.setattr(interp, "_vertex_corners", lambda *a: (calls.append(1), kernel(*a))[1])
     g = torch.Generator().manual_seed(5)
     c = torch.rand(20_000, 3, generator=g, dtype=dtype) * 2.6 - 1.3
     c[:4] = torch.tensor([[-1.0, 1.0, 0.0], [1.0, -1.0, -0.0], [0.5, 0.25, -0.5],
@@ -290,6 +295,9 @@ def test_vertex_corners_compiled_equal_the_tensor_form_to_the_bit(dtype, align, 
             ref_low, ref_w = corners(vertex_coords(picked, sizes[:d], align, padding))
             assert low.dtype == torch.long and w.dtype == dtype and low.shape == (20_000, d)
             assert torch.equal(low, ref_low) and torch.equal(_bits(w), _bits(ref_w))
+    with torch_threads(1):
+        vertex_corners(c, (4, 5, 6), align, padding)
+    assert calls                                                  # the compiled pass ran
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -299,7 +307,11 @@ def test_box_normalize_compiled_equals_the_tensor_form_to_the_bit(dtype, monkeyp
     t = torch.rand(5000, 1, generator=g)                         # float32 times, cast
     xyz[0, 0], xyz[1, 1], xyz[2, 2] = float("nan"), float("inf"), -0.0
     lo, hi = torch.tensor([-0.5, -0.75, -0.5]), torch.tensor([0.5, 0.25, 0.5])
+    calls = []
+    kernel = grids._box_normalize
+    monkeypatch.setattr(grids, "_box_normalize", lambda *a: (calls.append(1), kernel(*a))[1])
     fast = grids.box_normalize(xyz, t, lo, hi)
+    assert calls == [1]
     monkeypatch.setattr(grids, "AVAILABLE", False)
     slow = grids.box_normalize(xyz, t, lo, hi)
     assert fast.dtype == slow.dtype == dtype and torch.equal(_bits(fast), _bits(slow))
@@ -321,3 +333,22 @@ def test_interpolate_reads_the_named_columns_as_the_gathered_coordinates():
     for axes in ((3,), (0, 4), (1, 2, 3)):
         with pytest.raises(InputError, match="coords"):
             interpolate(grid, coords, True, "zeros", axes)
+
+
+@pytest.mark.skipif(numba_threads() < 2, reason="numba has one thread here")
+def test_vertex_corners_split_between_two_threads_gives_the_same_bits(monkeypatch):
+    import baselines.interp as interp
+
+    calls = []
+    kernel = interp._vertex_corners_parts
+    monkeypatch.setattr(interp, "_vertex_corners_parts",
+                        lambda *a: (calls.append(1), kernel(*a))[1])
+    c = torch.rand(4 * GRAIN, 4, generator=torch.Generator().manual_seed(8)) * 2.4 - 1.2
+    with torch_threads(1):
+        one = interp.vertex_corners(c, (9, 7), False, "zeros", (3, 0))
+    with torch_threads(2):
+        two = interp.vertex_corners(c, (9, 7), False, "zeros", (3, 0))
+    assert calls == [1]
+    assert torch.equal(one[0], two[0]) and torch.equal(_bits(one[1]), _bits(two[1]))
+    with pytest.raises(InputError, match="axes/sizes"):
+        interp.vertex_corners(c, (9,), False, "zeros", (3, 0))

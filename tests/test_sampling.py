@@ -180,3 +180,34 @@ def test_reference_events_sign_rule() -> None:
     # t_ref = 350 > t1 = 150: −E(150, 350) = −2 (going back from t_ref to t1).
     assert float(ev.window(pix, 350.0, 150.0)) == -2.0
     assert float(ev.value(pix, 150.0) - ev.value(pix, 350.0)) == -2.0
+
+
+def test_sample_pixels_draws_pinned_to_the_tensor_form() -> None:
+    """The pixels and the generator's next draws for three fixed seeds, as the tensor
+    form of ``sample_pixels`` (``66964ec``) gave them: a group asking most of its pool
+    (a ``randperm``), redraws of duplicates, a view without events. The NumPy
+    bookkeeping makes the same torch draws in the same order."""
+    em = torch.zeros(3, 3, 4)
+    em[0, 0, 1], em[0, 1, 2], em[0, 2, 3], em[0, 2, 0] = 2.0, -1.0, 0.5, 1.0
+    em[1] = torch.tensor([[0, 1, 0, 1], [1, 1, 0, 0], [0, 0, 1, 1.0]])
+    pinned = {
+        (0, (4, 9, 5), 0.5): ([0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1, 1, 2, 2, 2, 2, 2],
+                              [2, 2, 1, 2, 1, 2, 1, 2, 0, 2, 2, 0, 0, 1, 1, 0, 1, 0],
+                              [3, 0, 2, 0, 1, 3, 3, 1, 2, 2, 3, 3, 1, 0, 2, 3, 1, 2],
+                              [0.949266337947, 0.265221338978]),
+        (1, (6, 5, 3), 0.2): ([0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 2, 2, 2],
+                              [0, 0, 1, 2, 0, 2, 0, 1, 1, 2, 2, 0, 1, 0],
+                              [0, 2, 2, 0, 1, 3, 2, 0, 1, 3, 2, 2, 2, 1],
+                              [0.512447328152, 0.71183813972]),
+        (2, (12, 2, 7), 0.9): ([0] * 12 + [1, 1] + [2] * 7,
+                               [2, 1, 0, 1, 2, 1, 2, 0, 0, 0, 1, 2, 2, 1, 0, 2, 1, 2, 0, 1, 2],
+                               [2, 1, 3, 3, 3, 0, 0, 0, 2, 1, 2, 0, 0, 3, 0, 1, 1, 2, 2, 3, 3],
+                               [0.55297596658, 0.327015778108]),
+    }
+    for (seed, counts, neg), (view, row, col, after) in pinned.items():
+        gen = torch.Generator().manual_seed(seed)
+        v, r, c = sample_pixels(em, torch.tensor(counts), neg, gen)
+        assert v.dtype == r.dtype == c.dtype == torch.int64
+        assert (v.tolist(), r.tolist(), c.tolist()) == (view, row, col)
+        nxt = torch.rand(2, generator=gen, dtype=torch.float64).tolist()
+        assert nxt == pytest.approx(after, abs=1e-12)

@@ -79,16 +79,16 @@ def serves(keys: Tensor) -> bool:
 
 def lookup(keys: Tensor, values: Tensor, offsets: Tensor, pix: Tensor, rank: Tensor,
            stride: int) -> Tensor | None:
-    """``V [N]`` float64 at pixels ``pix [N]`` and time ranks ``rank [N]`` (int64) of the
+    """``V`` float64 at pixels ``pix`` and time ranks ``rank`` (int64, one shape) of the
     store's ``keys [n]``, ``values [n]`` and ``offsets [n_pixels + 1]`` (``stride = U + 1``);
     ``None`` where :func:`serves` is false."""
     if not serves(keys):
         return None
-    out = np.empty(pix.shape[0])
+    out = np.empty(pix.numel())
     _lookup(keys.numpy(), values.numpy(), offsets.numpy(),
-            pix.to(torch.int64).contiguous().numpy(),
-            rank.to(torch.int64).contiguous().numpy(), int(stride), out)
-    return torch.from_numpy(out)
+            pix.to(torch.int64).reshape(-1).contiguous().numpy(),
+            rank.to(torch.int64).reshape(-1).contiguous().numpy(), int(stride), out)
+    return torch.from_numpy(out).reshape(pix.shape)
 
 
 def window_all(time_order: tuple[Tensor, Tensor, Tensor], a: int, b: int, values: Tensor,

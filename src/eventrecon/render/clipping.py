@@ -43,7 +43,8 @@ import torch
 from torch import Tensor
 
 from eventrecon.errors import InputError
-from eventrecon.render.compiled import AVAILABLE, compiled
+from eventrecon.render.compiled import AVAILABLE
+from eventrecon.render.compiled import compiled as compiled_loop
 
 __all__ = ["Cylinder", "INSIDE_TOL", "PARALLEL_EPS", "NO_CLIPPING"]
 
@@ -83,19 +84,19 @@ def _quadratic_interval(a: Tensor, b: Tensor, c: Tensor) -> tuple[Tensor, Tensor
     return torch.minimum(r1, r2), torch.maximum(r1, r2), ok
 
 
-@compiled
+@compiled_loop
 def _nan_max(a: float, b: float) -> float:
     """``torch.maximum`` of two floats: NaN if either is."""
     return a if (a > b or a != a) else b
 
 
-@compiled
+@compiled_loop
 def _nan_min(a: float, b: float) -> float:
     """``torch.minimum`` of two floats: NaN if either is."""
     return a if (a < b or a != a) else b
 
 
-@compiled
+@compiled_loop
 def _quadratic(a: float, b: float, c: float) -> tuple[float, float, bool]:
     """:func:`_quadratic_interval` of one ray, the same expressions."""
     disc = b * b - a * c
@@ -107,7 +108,7 @@ def _quadratic(a: float, b: float, c: float) -> tuple[float, float, bool]:
     return _nan_min(r1, r2), _nan_max(r1, r2), ok
 
 
-@compiled
+@compiled_loop
 def _intervals(o: np.ndarray, d: np.ndarray, r: float, y_min: float, y_max: float,
                eps: float, near: np.ndarray, far: np.ndarray, hit: np.ndarray) -> None:
     """:meth:`Cylinder.ray_interval` of rays ``o, d [N, 3]`` (cylinder radius ``r``
