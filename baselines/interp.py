@@ -106,8 +106,7 @@ def _vertex_corners(coords: Any, axes: Any, sizes: Any, align: bool, border: boo
                     units: Any, lower: Any, weights: Any) -> None:
     """:func:`vertex_coords` then :func:`corners`, point by point, of the columns
     ``axes`` of ``coords``, with their expressions in the coordinates' dtype (``sizes``:
-    the vertex counts and ``units``:
-    1, 2 and 2³¹, both in that dtype)."""
+    the vertex counts, and ``units``: 1, 2 and 2³¹, both in that dtype)."""
     one, two, top = units[0], units[1], units[2]
     zero = one - one
     for n in range(coords.shape[0]):
