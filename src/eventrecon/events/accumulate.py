@@ -252,7 +252,7 @@ class DecayedEvents:
             bounds = torch.tensor([r0, r1], dtype=ranks.dtype, device=self.device)
             a, b = torch.searchsorted(ranks, bounds, right=True).tolist()
             fast = compiled_queries.window_all(self._time_order, a, b, self.values,
-                                               self.offsets, bool(t0 <= t1))
+                                               self.offsets, bool(t0 <= t1), out)
             if fast is not None:
                 return fast.reshape(self.n_views, self.height, self.width)
             pix, pos = pixels[a:b].long(), positions[a:b].long()

@@ -92,17 +92,17 @@ def lookup(keys: Tensor, values: Tensor, offsets: Tensor, pix: Tensor, rank: Ten
 
 
 def window_all(time_order: tuple[Tensor, Tensor, Tensor], a: int, b: int, values: Tensor,
-               offsets: Tensor, forward: bool) -> Tensor | None:
-    """``E [n_pixels]`` float64 of the time-ordered events ``a … b − 1`` (``time_order``:
-    :attr:`DecayedEvents._time_order`'s ranks, pixels and positions), ``t0 ≤ t1`` when
-    ``forward``; ``None`` where :func:`serves` is false."""
+               offsets: Tensor, forward: bool, out: Tensor) -> Tensor | None:
+    """``out [n_pixels]`` (float64 zeros, the caller's) filled with ``E`` of the
+    time-ordered events ``a … b − 1`` (``time_order``: :attr:`DecayedEvents._time_order`'s
+    ranks, pixels and positions), ``t0 ≤ t1`` when ``forward``; ``None`` (``out``
+    untouched) where :func:`serves` is false."""
     if not serves(values):
         return None
     _, pixels, positions = time_order
-    n_pixels = offsets.shape[0] - 1
-    out = np.zeros(n_pixels)
+    n_pixels = out.shape[0]
     lo = np.full(n_pixels, values.shape[0], dtype=np.int64)
     hi = np.full(n_pixels, -1, dtype=np.int64)
     _window(pixels.numpy(), positions.numpy(), a, b, values.numpy(), offsets.numpy(),
-            forward, lo, hi, out)
-    return torch.from_numpy(out)
+            forward, lo, hi, out.numpy())
+    return out
