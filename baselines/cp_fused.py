@@ -101,12 +101,23 @@ def _samples(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weights
 def _forward(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weights: Any,
              rank: int, out: Any, s: Any, prod: Any) -> None:
     """``out [N, F]``: the rank sums of the line products (module docstring); ``s [4, C]``
-    and ``prod [C]`` scratch."""
+    and ``prod [C]`` scratch. Each sum runs from ``r = 0`` up; with four features (the
+    full field) their four sums run side by side, the same order, so that one sum's
+    additions do not each wait for the one before (1.2x the pass at 39 040 points)."""
     c_all = T0.shape[1]
     for n in range(lower.shape[0]):
         _samples(T0, T1, T2, T3, sizes, lower, weights, n, s)
         for c in range(c_all):
             prod[c] = ((s[0, c] * s[1, c]) * s[2, c]) * s[3, c]
+        if c_all == 4 * rank:                    # the four features' sums side by side
+            a0, a1, a2, a3 = prod[0], prod[rank], prod[2 * rank], prod[3 * rank]
+            for r in range(1, rank):
+                a0 += prod[r]
+                a1 += prod[rank + r]
+                a2 += prod[2 * rank + r]
+                a3 += prod[3 * rank + r]
+            out[n, 0], out[n, 1], out[n, 2], out[n, 3] = a0, a1, a2, a3
+            continue
         for f in range(c_all // rank):
             acc = prod[f * rank]
             for r in range(1, rank):
@@ -124,24 +135,31 @@ def _axpy(G: Any, row: int, w: Any, x: Any, a: int, inside: bool) -> None:
 
 @njit_borrowing
 def _backward(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weights: Any,
-              rank: int, grad: Any, G0: Any, G1: Any, G2: Any, G3: Any, s: Any,
+              feature: Any, grad: Any, G0: Any, G1: Any, G2: Any, G3: Any, s: Any,
               part: Any) -> None:
-    """``G_a += ∂L/∂T_a`` for ``grad = ∂L/∂out [N, F]`` (module docstring); ``s, part
-    [4, C]`` scratch. The products' gradients follow autograd's order for
-    ``((s0 · s1) · s2) · s3``."""
+    """``G_a += ∂L/∂T_a`` for ``grad = ∂L/∂out [N, F]`` (module docstring); ``feature
+    [C]``: each channel's feature ``f(c)``; ``s [4, C]``, ``part [5, C]`` scratch. The
+    products' gradients follow autograd's order for ``((s0 · s1) · s2) · s3``.
+
+    Each of ``part``'s rows is written by a loop over all ``C`` channels that writes
+    nothing else: LLVM vectorises such a loop, but not one that writes four rows
+    (too many pairs of rows to check for overlap) nor one of ``R < 16`` channels."""
     c_all = T0.shape[1]
+    s0, s1, s2, s3 = s[0], s[1], s[2], s[3]
+    q0, q1, q2, q3, g = part[0], part[1], part[2], part[3], part[4]
     for n in range(lower.shape[0]):
         p0, p1, p2, p3 = _samples(T0, T1, T2, T3, sizes, lower, weights, n, s)
-        for f in range(c_all // rank):
-            g = grad[n, f]
-            for c in range(f * rank, f * rank + rank):
-                p01 = s[0, c] * s[1, c]
-                g012 = g * s[3, c]
-                g01 = g012 * s[2, c]
-                part[3, c] = g * (p01 * s[2, c])
-                part[2, c] = g012 * p01
-                part[1, c] = g01 * s[0, c]
-                part[0, c] = g01 * s[1, c]
+        row = grad[n]
+        for c in range(c_all):
+            g[c] = row[feature[c]]
+        for c in range(c_all):
+            q3[c] = g[c] * ((s0[c] * s1[c]) * s2[c])
+        for c in range(c_all):
+            q2[c] = (g[c] * s3[c]) * (s0[c] * s1[c])
+        for c in range(c_all):
+            q1[c] = ((g[c] * s3[c]) * s2[c]) * s0[c]
+        for c in range(c_all):
+            q0[c] = ((g[c] * s3[c]) * s2[c]) * s1[c]
         for G, p, k in ((G0, p0, 0), (G1, p1, 1), (G2, p2, 2), (G3, p3, 3)):
             _axpy(G, p[0], p[2], part, k, p[4])
             _axpy(G, p[1], p[3], part, k, p[5])
@@ -161,15 +179,15 @@ def _forward_parts(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, w
 
 @njit_parallel
 def _backward_parts(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weights: Any,
-                    rank: int, grad: Any, G0: Any, G1: Any, G2: Any, G3: Any, s: Any,
+                    feature: Any, grad: Any, G0: Any, G1: Any, G2: Any, G3: Any, s: Any,
                     part: Any) -> None:
     """:func:`_backward` on ``P`` equal ranges of the points at once, range ``k`` into its
     own ``G_a[k]`` (``G_a [P, R_a, C]``; their sum over ``k`` is the gradient) with
-    scratch ``s[k], part[k]`` (``[P, 4, C]``)."""
+    scratch ``s[k] [4, C]``, ``part[k] [5, C]``."""
     n, p = lower.shape[0], s.shape[0]
     for k in prange(p):
         a, b = n * k // p, n * (k + 1) // p
-        _backward(T0, T1, T2, T3, sizes, lower[a:b], weights[a:b], rank, grad[a:b], G0[k],
+        _backward(T0, T1, T2, T3, sizes, lower[a:b], weights[a:b], feature, grad[a:b], G0[k],
                   G1[k], G2[k], G3[k], s[k], part[k])
 
 
@@ -199,13 +217,16 @@ class _CPRankSum(torch.autograd.Function):
         # outnumber the lines' rows
         p = jit.parts(lower.shape[0], grain=max(jit.GRAIN, sum(t.shape[0] for t in tables)))
         sums = [torch.zeros((p, *t.shape), dtype=lines[0].dtype) for t in tables]  # [P, R_a, C]
-        samples = np.empty((p, 4, tables[0].shape[1] + _PAD), tables[0].dtype)
-        args = (*tables, _sizes(lines), lower.numpy(), weights.numpy(), ctx.rank,
+        c, dtype = tables[0].shape[1], tables[0].dtype
+        samples = np.empty((p, 4, c + _PAD), dtype)
+        part = np.empty((p, 5, c + _PAD), dtype)
+        feature = np.arange(c, dtype=np.int64) // ctx.rank
+        args = (*tables, _sizes(lines), lower.numpy(), weights.numpy(), feature,
                 grad.contiguous().numpy())
         if p == 1:
-            _backward(*args, *(s[0].numpy() for s in sums), samples[0], np.empty_like(samples[0]))
+            _backward(*args, *(s[0].numpy() for s in sums), samples[0], part[0])
             return (*(s[0].t() for s in sums), None, None, None)
-        _backward_parts(*args, *(s.numpy() for s in sums), samples, np.empty_like(samples))
+        _backward_parts(*args, *(s.numpy() for s in sums), samples, part)
         return (*(s.sum(0).t() for s in sums), None, None, None)
 
 
