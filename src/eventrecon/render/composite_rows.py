@@ -20,9 +20,11 @@ quadrature of :mod:`eventrecon.render.volume`,
 the optical depth summed and ``T`` evaluated in float64, one exponential per sample: the
 same values as PyTorch's float32 ``exp(−Σ) · (−expm1(−τ))`` to float32 rounding, except
 the weights of steps with ``τ`` below ~1e-9, whose relative error grows as ``1e-16 / τ``
-(their absolute error stays below 1e-15). Its
-gradient comes from one pass per ray from the back, with ``g_C`` (zero where the clamp
-is active), ``g_O``, ``g_D`` the incoming gradients:
+(their absolute error stays below 1e-15). When ``σ`` or ``c`` need a gradient, the
+forward pass keeps each ray's ``T`` and ``Σ w c`` (float64, ``[n, K + 3]``) so that the
+backward pass need not evaluate them again. The gradient comes from one pass per ray from
+the back, with ``g_C`` (zero where the clamp is active), ``g_O``, ``g_D`` the incoming
+gradients:
 
 .. math::
     \\frac{\\partial L}{\\partial c_i} = w_i\\,g_C,\\qquad
@@ -110,18 +112,24 @@ def _ray(s: Any, slot: Any, far: Any, sig: Any, col: Any, tau_max: Any, r: int,
 
 @compiled
 def _forward(s: Any, slot: Any, far: Any, sig: Any, col: Any, bg: Any, tau_max: Any,
-             rgb: Any, opacity: Any, depth: Any, weights: Any, after: Any) -> None:
+             rgb: Any, opacity: Any, depth: Any, weights: Any, after: Any,
+             sums: Any) -> None:
     """``rgb [n, 3]``, ``opacity [n]``, ``depth [n]`` and ``weights [n, K]`` of the rays
     (module docstring); ``s [n, K]`` sorted, ``slot [n, K]`` rows of ``sig [M]``,
-    ``col [M, 3]``; ``after [K]`` float64 scratch (:func:`_ray`)."""
-    k, one = s.shape[1], np.float32(1)
+    ``col [M, 3]``. ``after``, ``sums``: float64, either ``[n, K]`` and ``[n, 3]``, where
+    each ray's transmittances (:func:`_ray`) and colour sums are kept for the backward
+    pass, or ``[1, K]`` and ``[1, 3]`` scratch."""
+    k, one, keep = s.shape[1], np.float32(1), after.shape[0] > 1
     for r in range(s.shape[0]):
-        c0, c1, c2, dep = _ray(s, slot, far, sig, col, tau_max, r, after)
+        i = r if keep else 0
+        c0, c1, c2, dep = _ray(s, slot, far, sig, col, tau_max, r, after[i])
+        sums[i, 0], sums[i, 1], sums[i, 2] = c0, c1, c2
+        after_r = after[i]
         before = 1.0
         for q in range(k):
-            weights[r, q] = np.float32(before - after[q])
-            before = after[q]
-        t_last = np.float32(after[k - 1])
+            weights[r, q] = np.float32(before - after_r[q])
+            before = after_r[q]
+        t_last = np.float32(after_r[k - 1])
         rgb[r, 0] = _unit(np.float32(c0) + t_last * bg[r, 0])
         rgb[r, 1] = _unit(np.float32(c1) + t_last * bg[r, 1])
         rgb[r, 2] = _unit(np.float32(c2) + t_last * bg[r, 2])
@@ -132,13 +140,14 @@ def _forward(s: Any, slot: Any, far: Any, sig: Any, col: Any, bg: Any, tau_max: 
 @compiled
 def _backward(s: Any, slot: Any, far: Any, sig: Any, col: Any, bg: Any, tau_max: Any,
               g_rgb: Any, g_opacity: Any, g_depth: Any, g_sig: Any, g_col: Any,
-              after: Any) -> None:
+              after_all: Any, sums: Any) -> None:
     """``g_sig [M]``, ``g_col [M, 3]`` (zero on entry; masked rows keep 0) from the
-    outputs' gradients (module docstring); ``after [K]`` float64 scratch (:func:`_ray`,
-    the forward pass again)."""
+    outputs' gradients (module docstring); ``after_all [n, K]``, ``sums [n, 3]``: the
+    forward pass's transmittances and colour sums (:func:`_forward`)."""
     k, zero, one = s.shape[1], np.float32(0), np.float32(1)
     for r in range(s.shape[0]):
-        c0, c1, c2, _ = _ray(s, slot, far, sig, col, tau_max, r, after)
+        after = after_all[r]
+        c0, c1, c2 = sums[r, 0], sums[r, 1], sums[r, 2]
         t_last = np.float32(after[k - 1])
         # the clamp of C to [0, 1] passes the gradient where C is inside, bounds included
         pre = (np.float32(c0) + t_last * bg[r, 0], np.float32(c1) + t_last * bg[r, 1],
@@ -174,27 +183,30 @@ def _backward(s: Any, slot: Any, far: Any, sig: Any, col: Any, bg: Any, tau_max:
 
 @compiled_parallel
 def _forward_parts(s: Any, slot: Any, far: Any, sig: Any, col: Any, bg: Any, tau_max: Any,
-                   rgb: Any, opacity: Any, depth: Any, weights: Any, after: Any) -> None:
-    """:func:`_forward` on ``P`` equal ranges of the rays at once (``after [P, K]``: each
-    range's scratch)."""
-    n, p = s.shape[0], after.shape[0]
+                   rgb: Any, opacity: Any, depth: Any, weights: Any, after: Any,
+                   sums: Any, p: int, keep: bool) -> None:
+    """:func:`_forward` on ``p`` equal ranges of the rays at once (``keep``: ``after
+    [n, K]``, ``sums [n, 3]`` kept; otherwise ``[p, K]``, ``[p, 3]``, each range's
+    scratch)."""
+    n = s.shape[0]
     for part in prange(p):
         a, b = n * part // p, n * (part + 1) // p
+        lo, hi = (a, b) if keep else (part, part + 1)
         _forward(s[a:b], slot[a:b], far[a:b], sig, col, bg[a:b], tau_max, rgb[a:b],
-                 opacity[a:b], depth[a:b], weights[a:b], after[part])
+                 opacity[a:b], depth[a:b], weights[a:b], after[lo:hi], sums[lo:hi])
 
 
 @compiled_parallel
 def _backward_parts(s: Any, slot: Any, far: Any, sig: Any, col: Any, bg: Any, tau_max: Any,
                     g_rgb: Any, g_opacity: Any, g_depth: Any, g_sig: Any, g_col: Any,
-                    after: Any) -> None:
-    """:func:`_backward` on ``P`` equal ranges of the rays at once (``after [P, K]``: each
-    range's scratch; a row belongs to one ray, so the ranges write disjoint rows)."""
-    n, p = s.shape[0], after.shape[0]
+                    after: Any, sums: Any, p: int) -> None:
+    """:func:`_backward` on ``p`` equal ranges of the rays at once (a row belongs to one
+    ray, so the ranges write disjoint rows)."""
+    n = s.shape[0]
     for part in prange(p):
         a, b = n * part // p, n * (part + 1) // p
         _backward(s[a:b], slot[a:b], far[a:b], sig, col, bg[a:b], tau_max, g_rgb[a:b],
-                  g_opacity[a:b], g_depth[a:b], g_sig, g_col, after[part])
+                  g_opacity[a:b], g_depth[a:b], g_sig, g_col, after[a:b], sums[a:b])
 
 
 class CompositeRows(torch.autograd.Function):
@@ -210,9 +222,13 @@ class CompositeRows(torch.autograd.Function):
         rgb, opacity, depth = torch.empty(n, 3), torch.empty(n), torch.empty(n)
         weights = torch.empty(n, k)
         args = [x.numpy() for x in (s, slot, far, sig, col, bg)]
+        p = parts(n, RAYS_PER_RANGE)
+        keep = any(ctx.needs_input_grad[:2])   # the backward pass reads T and Σ w c
+        after, sums = torch.empty(n if keep else p, k, dtype=torch.float64), \
+            torch.empty(n if keep else p, 3, dtype=torch.float64)
         _forward_parts(*args, _tau_max(), rgb.numpy(), opacity.numpy(), depth.numpy(),
-                       weights.numpy(), np.empty((parts(n, RAYS_PER_RANGE), k)))
-        ctx.save_for_backward(sig, col, s, slot, far, bg)
+                       weights.numpy(), after.numpy(), sums.numpy(), p, keep)
+        ctx.save_for_backward(sig, col, s, slot, far, bg, after, sums)
         ctx.mark_non_differentiable(weights)
         return rgb, opacity, depth, weights
 
@@ -220,13 +236,12 @@ class CompositeRows(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx: Any, g_rgb: Tensor, g_opacity: Tensor, g_depth: Tensor,  # type: ignore[override]
                  _: Tensor) -> tuple[Tensor | None, ...]:
-        sig, col, s, slot, far, bg = ctx.saved_tensors
-        n, k = s.shape
+        sig, col, s, slot, far, bg, after, sums = ctx.saved_tensors
         g_sig, g_col = torch.zeros_like(sig), torch.zeros_like(col)
         grads = [g.contiguous().float().numpy() for g in (g_rgb, g_opacity, g_depth)]
         _backward_parts(*(x.numpy() for x in (s, slot, far, sig, col, bg)), _tau_max(),
-                        *grads, g_sig.numpy(), g_col.numpy(),
-                        np.empty((parts(n, RAYS_PER_RANGE), k)))
+                        *grads, g_sig.numpy(), g_col.numpy(), after.numpy(), sums.numpy(),
+                        parts(s.shape[0], RAYS_PER_RANGE))
         return g_sig, g_col, None, None, None, None
 
 
