@@ -17,8 +17,9 @@ meet the cylinder, the same stages run ray by ray (:func:`render_hit`):
    so only a NaN there shows), as :meth:`Renderer._march` multiplies by its masks;
 3. the coarse level is composited from the rows (:mod:`eventrecon.render.composite_rows`);
 4. :func:`_fine`: the fine samples by the inverse CDF of :func:`~.samplers.sample_pdf`
-   (the same quantiles or the same sorted uniform draws, walked against the CDF: a merge,
-   not a search) and the end of the step where ``1 − Σ w`` first falls below the stop;
+   (the same quantiles or the same uniform draws, sorted by a network,
+   :mod:`~eventrecon.render.sort_rows`, and walked against the CDF: a merge, not a
+   search) and the end of the step where ``1 − Σ w`` first falls below the stop;
    the fine samples the grid keeps before that point are asked;
 5. the union of both levels, merged as two sorted lists, is composited.
 
@@ -47,6 +48,7 @@ from eventrecon.render.compiled import AVAILABLE, compiled, compiled_parallel, p
 from eventrecon.render.composite_rows import RAYS_PER_RANGE, composite_rows, merge
 from eventrecon.render.queries import query_field
 from eventrecon.render.samplers import stratified, uniform
+from eventrecon.render.sort_rows import sort_rows
 
 if TYPE_CHECKING:
     from eventrecon.fields.base import Field
@@ -250,7 +252,7 @@ def render_hit(renderer: nn.Module, field: Field, o: Tensor, d: Tensor, t: Tenso
     if r.n_fine == 0:
         return levels
     if perturb:                   # sample_pdf's draws, in the same order
-        u = uniform((n, r.n_fine), gen, s_c).sort(dim=-1).values.contiguous()
+        u = sort_rows(uniform((n, r.n_fine), gen, s_c))
     else:
         u = torch.linspace(0.0, 1.0, r.n_fine).expand(n, r.n_fine).contiguous()
     s_f, stop_s = torch.empty(n, r.n_fine), np.empty(n, np.float32)
