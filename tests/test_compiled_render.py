@@ -214,6 +214,41 @@ def test_composite_rows_gradient_against_finite_differences() -> None:
             assert abs(float(f_plus - f_minus) / 2e-2 - float(grad[i])) < 2e-3
 
 
+def test_composite_rows_keeps_what_compositing_again_would_give() -> None:
+    """With a gradient wanted the forward pass keeps each ray's float64 ``T`` and colour
+    sums for the backward pass: the same bits as :func:`composite_rows._ray` gives ray by
+    ray, the same outputs as without a gradient, and with nothing to give no backward."""
+    g = torch.Generator().manual_seed(8)
+    n, k = 40, 12
+    s = torch.sort(torch.rand(n, k, generator=g), -1).values + 1.0
+    far = s[:, -1] + 0.2
+    slot = torch.arange(n * k).reshape(n, k)
+    slot[::3, 2] = -1
+    slot[1::4, 5] = -slot[1::4, 5] - 2              # masked rows
+    sig, col = torch.rand(n * k, generator=g) * 6, torch.rand(n * k, 3, generator=g)
+    bg = torch.rand(n, 3, generator=g)
+    arrays = [x.numpy() for x in (s, slot, far, sig, col, bg)]
+    outs = [np.empty((n, 3), np.float32), np.empty(n, np.float32), np.empty(n, np.float32),
+            np.empty((n, k), np.float32)]
+    after, sums = np.empty((n, k)), np.empty((n, 3))
+    composite_rows._forward_parts(*arrays, composite_rows._tau_max(), *outs, after, sums, 2,
+                                  True)
+    row = np.empty(k)
+    for r in range(n):
+        c = composite_rows._ray(*arrays[:5], composite_rows._tau_max(), r, row)
+        assert np.array_equal(after[r], row) and np.array_equal(sums[r], c[:3])
+    plain = composite_rows.composite_rows(sig, col, s, slot, far, bg)
+    sig_g, col_g = sig.clone().requires_grad_(), col.clone().requires_grad_()
+    kept = composite_rows.composite_rows(sig_g, col_g, s, slot, far, bg)
+    for key in ("rgb", "opacity", "depth", "weights"):
+        assert torch.equal(plain[key], kept[key])
+        assert np.array_equal(plain[key].numpy(), outs[("rgb", "opacity", "depth",
+                                                        "weights").index(key)])
+    s_g = s.clone().requires_grad_()                # only a gradient nobody gets here
+    out = composite_rows.CompositeRows.apply(sig, col, s_g, slot, far, bg)
+    assert torch.autograd.grad(out[0].sum(), s_g, allow_unused=True)[0] is None
+
+
 @pytest.mark.skipif(numba_threads() < 2, reason="numba has one thread here")
 def test_rays_split_between_threads_give_the_same_bits() -> None:
     rays = _rays(4096, 5)                        # ~3000 hits: two ranges of rays

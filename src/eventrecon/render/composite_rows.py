@@ -21,8 +21,8 @@ the optical depth summed and ``T`` evaluated in float64, one exponential per sam
 same values as PyTorch's float32 ``exp(−Σ) · (−expm1(−τ))`` to float32 rounding, except
 the weights of steps with ``τ`` below ~1e-9, whose relative error grows as ``1e-16 / τ``
 (their absolute error stays below 1e-15). When ``σ`` or ``c`` need a gradient, the
-forward pass keeps each ray's ``T`` and ``Σ w c`` (float64, ``[n, K + 3]``) so that the
-backward pass need not evaluate them again. The gradient comes from one pass per ray from
+forward pass keeps each ray's ``T`` and ``Σ w c`` (float64 ``[n, K]`` and ``[n, 3]``) so
+that the backward pass need not evaluate them again. The gradient comes from one pass per ray from
 the back, with ``g_C`` (zero where the clamp is active), ``g_O``, ``g_D`` the incoming
 gradients:
 
@@ -237,6 +237,8 @@ class CompositeRows(torch.autograd.Function):
     def backward(ctx: Any, g_rgb: Tensor, g_opacity: Tensor, g_depth: Tensor,  # type: ignore[override]
                  _: Tensor) -> tuple[Tensor | None, ...]:
         sig, col, s, slot, far, bg, after, sums = ctx.saved_tensors
+        if not any(ctx.needs_input_grad[:2]):    # nothing kept, and no gradient to give
+            return None, None, None, None, None, None
         g_sig, g_col = torch.zeros_like(sig), torch.zeros_like(col)
         grads = [g.contiguous().float().numpy() for g in (g_rgb, g_opacity, g_depth)]
         _backward_parts(*(x.numpy() for x in (s, slot, far, sig, col, bg)), _tau_max(),
