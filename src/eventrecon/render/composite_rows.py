@@ -22,9 +22,9 @@ same values as PyTorch's float32 ``exp(−Σ) · (−expm1(−τ))`` to float32 
 the weights of steps with ``τ`` below ~1e-9, whose relative error grows as ``1e-16 / τ``
 (their absolute error stays below 1e-15). When ``σ`` or ``c`` need a gradient, the
 forward pass keeps each ray's ``T`` and ``Σ w c`` (float64 ``[n, K]`` and ``[n, 3]``) so
-that the backward pass need not evaluate them again. The gradient comes from one pass per ray from
-the back, with ``g_C`` (zero where the clamp is active), ``g_O``, ``g_D`` the incoming
-gradients:
+that the backward pass need not evaluate them again. The gradient comes from one pass
+per ray from the back, with ``g_C`` (zero where the clamp is active), ``g_O``, ``g_D``
+the incoming gradients:
 
 .. math::
     \\frac{\\partial L}{\\partial c_i} = w_i\\,g_C,\\qquad
