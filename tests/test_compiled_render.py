@@ -214,7 +214,8 @@ def test_composite_rows_gradient_against_finite_differences() -> None:
             assert abs(float(f_plus - f_minus) / 2e-2 - float(grad[i])) < 2e-3
 
 
-def test_composite_rows_keeps_what_compositing_again_would_give() -> None:
+def test_composite_rows_keeps_what_compositing_again_would_give(
+        monkeypatch: pytest.MonkeyPatch) -> None:
     """With a gradient wanted the forward pass keeps each ray's float64 ``T`` and colour
     sums for the backward pass: the same bits as :func:`composite_rows._ray` gives ray by
     ray, the same outputs as without a gradient, and with nothing to give no backward."""
@@ -244,6 +245,10 @@ def test_composite_rows_keeps_what_compositing_again_would_give() -> None:
         assert torch.equal(plain[key], kept[key])
         assert np.array_equal(plain[key].numpy(), outs[("rgb", "opacity", "depth",
                                                         "weights").index(key)])
+    def refuse(*args):                              # nothing was kept to read
+        raise AssertionError("the backward loop ran")
+
+    monkeypatch.setattr(composite_rows, "_backward_parts", refuse)
     s_g = s.clone().requires_grad_()                # only a gradient nobody gets here
     out = composite_rows.CompositeRows.apply(sig, col, s_g, slot, far, bg)
     assert torch.autograd.grad(out[0].sum(), s_g, allow_unused=True)[0] is None
