@@ -52,7 +52,7 @@ from eventrecon.sim.compiled_paths import (
 )
 from eventrecon.sim.core_settings import STEP_TARGET
 from eventrecon.sim.crossing import FIRST_LEG, KEEP
-from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline
+from eventrecon.sim.jit import AVAILABLE, larger, njit_borrowing, njit_inline, smaller
 
 __all__ = ["AVAILABLE", "run_compiled"]
 
@@ -85,7 +85,7 @@ def _plan(pix, t_last, h, grow, m, M, max_step, G, T, start, n_valid, odd):
         ended = t0 >= 1.0
         while k < m[i] and not ended:
             if grow[i]:
-                s += min(p2 * h0, max_step)
+                s += smaller(p2 * h0, max_step)
                 p2 *= 2.0
                 t = t0 + s
             else:
@@ -150,7 +150,7 @@ def _accept(i, T, s0, nv, odd, D, R, M, bound, min_step, max_step, max_curvature
         if not (r >= abs(D[k])):                 # np.fmax: NaN gives way
             r = abs(D[k])
         R[k] = r
-        Rmax = max(Rmax, r)
+        Rmax = larger(Rmax, r)
         if r > bound:
             n_rej += 1
             if n_acc == nv:
@@ -159,16 +159,16 @@ def _accept(i, T, s0, nv, odd, D, R, M, bound, min_step, max_step, max_curvature
     if forced:
         n_acc = nv
     rej = n_acc < nv
-    kl = max(n_acc - 1, 0)
+    kl = larger(n_acc - 1, 0)
     k = n_acc if rej else kl
     hk = T[s0 + k] - (t0 if k == 0 else T[s0 + k - 1])
     hl = T[s0 + kl] - (t0 if kl == 0 else T[s0 + kl - 1])
     Dk, Rk = D[k], R[k]
     Ek = Dk - (slope[i] * hk if k == 0 else D[k - 1])
-    a = max(abs(Dk + Ek), abs(Dk + M * Ek))
+    a = larger(abs(Dk + Ek), abs(Dk + M * Ek))
     if math.isnan(a):
         a = Rk
-    pred = max(a, Rk) / bound
+    pred = larger(a, Rk) / bound
     if rej:
         f = clip(STEP_TARGET * bound / Rk, 0.1, 0.7)
     else:
@@ -180,9 +180,9 @@ def _accept(i, T, s0, nv, odd, D, R, M, bound, min_step, max_step, max_curvature
     if b:
         m[i] = 1
     elif rej:
-        m[i] = min(max(n_acc + 1, 2), M)
+        m[i] = smaller(larger(n_acc + 1, 2), M)
     else:
-        m[i] = min(2 * nv, M)
+        m[i] = smaller(2 * nv, M)
     grow[i] = (not rej) and f >= 2.0 and Rmax <= 0.5 * bound and hn < max_step
     return n_acc, (n_rej if forced else 0), new_slope
 
@@ -217,7 +217,7 @@ def _step(i0, T, start, n_valid, odd, L, pix, st_t, st_L, h, m, brk, grow, slope
         for k in range(nv):
             D[k] = L[s0 + k] - (prev if k == 0 else L[s0 + k - 1])
             var += abs(D[k])
-        if n + var / min(on[i], off[i]) + nv + KEEP > bg.size:   # floats: no overflow
+        if n + var / smaller(on[i], off[i]) + nv + KEEP > bg.size:   # floats: no overflow
             return i, n, n_turns, n_forced      # the caller makes room
         n_acc, forced, new_slope = _accept(i, T, s0, nv, odd[i], D, R, M, bound, min_step,
                                            max_step, max_curvature, st_t, h, m, brk, grow,
@@ -279,7 +279,7 @@ def _commit_turned(a, tr_i, tr_tb, tr_Lb, tr_moved, tr_gap, Wt, WL, wlen, wdone,
                 pt[m], pL[m] = xt[k], xL[k]
                 k += 1
             m += 1
-        if n + room(pL, m, min(on[i], off[i])) > bg.size:
+        if n + room(pL, m, smaller(on[i], off[i])) > bg.size:
             return a, n
         n = commit_path(pt, pL, m, wdone[i], i, pix[i], st_t, st_L, ref, on, off, bg, bt, bp,
                          n)

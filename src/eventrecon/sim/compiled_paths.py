@@ -30,7 +30,7 @@ from eventrecon.sim.crossing import (
     QUARTERS,
     SECOND_STEP,
 )
-from eventrecon.sim.jit import njit, njit_borrowing, njit_inline
+from eventrecon.sim.jit import larger, njit, njit_borrowing, njit_inline
 
 __all__ = ["clip", "parabola", "cross_time", "room", "commit_path", "turn", "find_turns",
            "vertex_may_gain", "queue_turns", "gather_turns", "refine_turns"]
@@ -81,7 +81,7 @@ def _scan_root(u, C0, C1, C2, C3, Z0, Z1, Z2):
         if _poly(j / GRID, C0, C1, C2, C3, Z0, Z1, Z2)[0] - u >= 0:
             k = j
             break
-    k = max(k, 1)
+    k = larger(k, 1)
     lo, hi = (k - 1) / GRID, k / GRID
     x = 0.5 * (lo + hi)
     for _ in range(BRACKETED_STEPS):

@@ -43,7 +43,8 @@ except ImportError:                              # pragma: no cover - numba is a
     numba = None
 
 __all__ = ["AVAILABLE", "SOURCES", "drop_stale_cache", "njit", "njit_borrowing",
-           "njit_inline", "njit_parallel", "numba_threads", "parts", "prange", "GRAIN"]
+           "njit_inline", "njit_parallel", "larger", "smaller", "numba_threads", "parts",
+           "prange", "GRAIN"]
 
 #: The modules of this package whose compiled functions call (inline) one another, and
 #: ``crossing.py``, whose constants the compiled crossing time reads.
@@ -95,6 +96,21 @@ def njit_inline(fn: Callable) -> Callable:
 def njit_borrowing(fn: Callable) -> Callable:
     """:func:`njit` with ``nrt=False`` (a decorator; see the module docstring)."""
     return njit(fn, nrt=False)
+
+
+@njit_inline
+def larger(a, b):
+    """``max(a, b)`` of two scalars, inlined: numba compiles the builtin as a function of
+    its own that LLVM leaves out of line, and each call in a loop spills the caller's
+    floating-point registers. The builtin's rule: ``a`` unless ``b > a`` (``NaN`` in
+    ``b`` gives way)."""
+    return b if b > a else a
+
+
+@njit_inline
+def smaller(a, b):
+    """``min(a, b)`` of two scalars, inlined (:func:`larger`): ``a`` unless ``b < a``."""
+    return b if b < a else a
 
 
 #: :func:`~eventrecon.render.compiled.compiled_parallel`: ``parallel=True``, its ``prange``

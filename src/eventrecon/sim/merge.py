@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from eventrecon.sim.jit import AVAILABLE, njit
+from eventrecon.sim.jit import AVAILABLE, larger, njit, smaller
 
 __all__ = ["time_order", "merge_by_time"]
 
@@ -87,7 +87,7 @@ def _count(t, lo, scale, B, start):
     """Add the bucket sizes of ``t`` (``⌊(t − lo)·scale⌋``, at most ``B − 1``) to
     ``start[1:]``."""
     for i in range(t.size):
-        start[max(min(np.int64((t[i] - lo) * scale), B - 1), 0) + 1] += 1
+        start[larger(smaller(np.int64((t[i] - lo) * scale), B - 1), 0) + 1] += 1
 
 
 @njit
@@ -96,7 +96,7 @@ def _place(t, g, q, index, first, lo, scale, B, pos, ts, gs, qs):
     bucket positions ``pos``: the index ``first + i`` where ``index``, else ``q[i]``
     (two stores, so that each keeps its own integer or float type)."""
     for i in range(t.size):
-        k = max(min(np.int64((t[i] - lo) * scale), B - 1), 0)
+        k = larger(smaller(np.int64((t[i] - lo) * scale), B - 1), 0)
         j = pos[k]
         ts[j], gs[j] = t[i], g[i]
         if index:
@@ -138,7 +138,7 @@ def _order_buckets(ts, gs, ps, start):
     which only moves events inside their fine bucket (the fine buckets follow in time)."""
     m_max = 0
     for k in range(start.size - 1):
-        m_max = max(m_max, start[k + 1] - start[k])
+        m_max = larger(m_max, start[k + 1] - start[k])
     s2 = np.zeros(m_max // FINE + 2, np.int64)
     ts2, gs2, ps2 = np.empty(m_max), np.empty(m_max, gs.dtype), np.empty(m_max, ps.dtype)
     for k in range(start.size - 1):
