@@ -557,6 +557,25 @@ def test_a_version_that_changed_only_some_runs_leaves_the_others_current(tmp_pat
                                   data_id="d") is not None) == kept
 
 
+def test_version_5_retrains_the_cpu_hexplane_runs_only(tmp_path, monkeypatch):
+    from eventrecon import records
+
+    monkeypatch.setattr(records, "METHOD_VERSION", 5)
+    assert [s for s in ("cpu_nerf", "cpu_ngp", "cpu_hexplane", "cpu_tensorf_cp", "paper_nerf",
+                        "gpu_hexplane") if records.VERSION_SCOPE[5](s)] == ["cpu_hexplane"]
+    base = {"scene": "spheres", "model": "hexplane", "loss": "full", "views": 6, "fps": 5.0,
+            "status": "ok", "psnr": 25.0, "max_steps": 1000, "method_version": 4}
+    found = {}
+    for sizing in ("cpu_hexplane", "cpu_tensorf_cp", "paper_hexplane"):
+        path = records.write_metrics(tmp_path / sizing, {**base, "sizing": sizing})
+        found[sizing] = (records.record_version(records.read_metrics(path)),
+                         records.finished_metrics(path, 1000, evaluate=True) is not None)
+    # the CPU HexPlane's grid changed size (128 -> 48): its version-4 record is stale and
+    # its job trains again; the other sizings train as before and keep their records
+    assert found == {"cpu_hexplane": (4, False), "cpu_tensorf_cp": (5, True),
+                     "paper_hexplane": (5, True)}
+
+
 def test_a_table_whose_runs_of_a_scene_used_different_datasets_says_so(tmp_path):
     from eventrecon.report.cells import method_notes
     from eventrecon.report.runs import read_run

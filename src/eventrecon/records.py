@@ -54,7 +54,7 @@ __all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "VERSION_SCOPE", "VERSION_KEYS",
 
 #: Version of the training method: bumped by every change that alters what a run trains
 #: (sampling, rendering, losses, optimiser) and so makes earlier records stale.
-METHOD_VERSION = 4
+METHOD_VERSION = 5
 #: What each version changed (the report's footnote for tables that mix versions).
 METHOD_VERSIONS: dict[int, str] = {
     1: "each of a ray's three renders (t0, t1, t_ref) drew its own coarse samples",
@@ -68,6 +68,8 @@ METHOD_VERSIONS: dict[int, str] = {
        "the power 10 (model.optim.betas_power: the moments forget over the authors' path "
        "length); NGP at the paper's size takes the authors' AdamW betas and eps (0.9, "
        "0.999; 1e-8), not instant-NGP's, which its CPU sizing keeps",
+    5: "HexPlane at its CPU size (sizing cpu_hexplane) has 48 vertices per axis, not 128: "
+       "the better grid at the CPU budgets (conf/sizing/cpu_hexplane.yaml)",
 }
 
 
@@ -77,11 +79,16 @@ def _v4_changed(sizing: str) -> bool:
     return sizing == "cpu_nerf" or (sizing.endswith("_ngp") and sizing != "cpu_ngp")
 
 
+def _v5_changed(sizing: str) -> bool:
+    """Version 5 changed HexPlane's CPU size only (48 vertices per axis, not 128)."""
+    return sizing == "cpu_hexplane"
+
+
 #: Versions that changed only some runs: whether each one changed the runs of a sizing
 #: choice (``<trainer>_<model>``, e.g. ``cpu_nerf``; Hydra records it even where no such
 #: file exists). A record of any other run made before it stands for that version too (it
 #: trains the same).
-VERSION_SCOPE: dict[int, Callable[[str], bool]] = {4: _v4_changed}
+VERSION_SCOPE: dict[int, Callable[[str], bool]] = {4: _v4_changed, 5: _v5_changed}
 #: Job keys (of a record's identity, :data:`eventrecon.report.runs.JOB_KEYS`) whose default
 #: a version changed: a run of that version supersedes an older run of the same job that
 #: differs from it only in those keys (it trained with the old default), as a re-run does.
@@ -218,8 +225,8 @@ def record_version(record: Mapping[str, Any], sizing: str | None = None) -> int:
 
     >>> record_version({"method_version": 3, "sizing": "cpu_ngp"}), record_version(
     ...     {"method_version": 3, "sizing": "cpu_nerf"}), record_version(
-    ...     {"method_version": 3}, sizing="cpu_hexplane") > 3
-    (4, 3, True)
+    ...     {"method_version": 4}, sizing="cpu_hexplane")
+    (5, 3, 4)
     """
     version = made_version(record)
     sizing = record.get("sizing") or sizing
