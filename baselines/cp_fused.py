@@ -44,40 +44,21 @@ import torch
 from torch import Tensor
 
 import eventrecon.sim.jit as jit
+from baselines.fused_kernels import (
+    PAD,
+    axpy,
+    line_sample,
+    line_vertices,
+    rank_sums,
+    scatter_copies,
+    sizes_of,
+    supported_factors,
+)
 from baselines.interp import channel_rows, vertex_corners
 from eventrecon.errors import InputError
-from eventrecon.sim.jit import AVAILABLE, njit_borrowing, njit_inline, njit_parallel, prange
+from eventrecon.sim.jit import njit_borrowing, njit_inline, njit_parallel, prange
 
 __all__ = ["cp_rank_sum", "supported"]
-
-
-@njit_inline
-def _pair(lower: Any, weights: Any, sizes: Any, n: int, a: int) -> tuple[int, int, Any, Any,
-                                                                            bool, bool]:
-    """Point ``n``'s two vertices on line ``a``: their rows, weights and whether each lies
-    inside the line."""
-    i = lower[n, a]
-    return (i, i + 1, weights[n, a, 0], weights[n, a, 1], 0 <= i < sizes[a],
-            0 <= i + 1 < sizes[a])
-
-
-@njit_inline
-def _line(T: Any, i: int, j: int, u: Any, v: Any, in_i: bool, in_j: bool, s: Any,
-          k: int) -> None:
-    """``s[k] [C]``: the line's sample, as :mod:`baselines.interp` sums it (a fill of 0, or
-    NaN for a NaN weight, i.e. a non-finite coordinate, plus each vertex inside)."""
-    if in_i and in_j:                            # the common case, without branches
-        for c in range(T.shape[1]):
-            s[k, c] = u * T[i, c] + v * T[j, c]
-        return
-    fill = u if u != u else u - u                # u − u: a zero of the weights' dtype
-    for c in range(T.shape[1]):
-        x = fill
-        if in_i:
-            x += u * T[i, c]
-        if in_j:
-            x += v * T[j, c]
-        s[k, c] = x
 
 
 @njit_inline
@@ -85,14 +66,14 @@ def _samples(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weights
              n: int, s: Any) -> tuple:
     """Point ``n``'s four line samples into ``s [4, C]``; returns each line's vertices
     (rows, weights, inside) for the scatter."""
-    a0, b0, u0, v0, in_a0, in_b0 = _pair(lower, weights, sizes, n, 0)
-    a1, b1, u1, v1, in_a1, in_b1 = _pair(lower, weights, sizes, n, 1)
-    a2, b2, u2, v2, in_a2, in_b2 = _pair(lower, weights, sizes, n, 2)
-    a3, b3, u3, v3, in_a3, in_b3 = _pair(lower, weights, sizes, n, 3)
-    _line(T0, a0, b0, u0, v0, in_a0, in_b0, s, 0)
-    _line(T1, a1, b1, u1, v1, in_a1, in_b1, s, 1)
-    _line(T2, a2, b2, u2, v2, in_a2, in_b2, s, 2)
-    _line(T3, a3, b3, u3, v3, in_a3, in_b3, s, 3)
+    a0, b0, u0, v0, in_a0, in_b0 = line_vertices(lower, weights, sizes, n, 0)
+    a1, b1, u1, v1, in_a1, in_b1 = line_vertices(lower, weights, sizes, n, 1)
+    a2, b2, u2, v2, in_a2, in_b2 = line_vertices(lower, weights, sizes, n, 2)
+    a3, b3, u3, v3, in_a3, in_b3 = line_vertices(lower, weights, sizes, n, 3)
+    line_sample(T0, a0, b0, u0, v0, in_a0, in_b0, s, 0)
+    line_sample(T1, a1, b1, u1, v1, in_a1, in_b1, s, 1)
+    line_sample(T2, a2, b2, u2, v2, in_a2, in_b2, s, 2)
+    line_sample(T3, a3, b3, u3, v3, in_a3, in_b3, s, 3)
     return ((a0, b0, u0, v0, in_a0, in_b0), (a1, b1, u1, v1, in_a1, in_b1),
             (a2, b2, u2, v2, in_a2, in_b2), (a3, b3, u3, v3, in_a3, in_b3))
 
@@ -100,38 +81,14 @@ def _samples(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weights
 @njit_borrowing
 def _forward(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weights: Any,
              rank: int, out: Any, s: Any, prod: Any) -> None:
-    """``out [N, F]``: the rank sums of the line products (module docstring); ``s [4, C]``
-    and ``prod [C]`` scratch. Each sum runs from ``r = 0`` up; with four features (the
-    full field) their four sums run side by side, the same order, so that one sum's
-    additions do not each wait for the one before (the pass 0.8x as long at 39 040
-    points)."""
+    """``out [N, F]``: the rank sums of the line products (module docstring,
+    :func:`~baselines.fused_kernels.rank_sums`); ``s [4, C]`` and ``prod [C]`` scratch."""
     c_all = T0.shape[1]
     for n in range(lower.shape[0]):
         _samples(T0, T1, T2, T3, sizes, lower, weights, n, s)
         for c in range(c_all):
             prod[c] = ((s[0, c] * s[1, c]) * s[2, c]) * s[3, c]
-        if c_all == 4 * rank:                    # the four features' sums side by side
-            a0, a1, a2, a3 = prod[0], prod[rank], prod[2 * rank], prod[3 * rank]
-            for r in range(1, rank):
-                a0 += prod[r]
-                a1 += prod[rank + r]
-                a2 += prod[2 * rank + r]
-                a3 += prod[3 * rank + r]
-            out[n, 0], out[n, 1], out[n, 2], out[n, 3] = a0, a1, a2, a3
-            continue
-        for f in range(c_all // rank):
-            acc = prod[f * rank]
-            for r in range(1, rank):
-                acc += prod[f * rank + r]
-            out[n, f] = acc
-
-
-@njit_inline
-def _axpy(G: Any, row: int, w: Any, x: Any, a: int, inside: bool) -> None:
-    """``G[row] += w · x[a]`` over the channels, for a vertex inside the line."""
-    if inside:
-        for c in range(G.shape[1]):
-            G[row, c] += w * x[a, c]
+        rank_sums(prod, rank, c_all, out, n)
 
 
 @njit_borrowing
@@ -162,8 +119,8 @@ def _backward(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, weight
         for c in range(c_all):
             q0[c] = ((g[c] * s3[c]) * s2[c]) * s1[c]
         for G, p, k in ((G0, p0, 0), (G1, p1, 1), (G2, p2, 2), (G3, p3, 3)):
-            _axpy(G, p[0], p[2], part, k, p[4])
-            _axpy(G, p[1], p[3], part, k, p[5])
+            axpy(G, p[0], p[2], part, k, p[4])
+            axpy(G, p[1], p[3], part, k, p[5])
 
 
 @njit_parallel
@@ -192,11 +149,6 @@ def _backward_parts(T0: Any, T1: Any, T2: Any, T3: Any, sizes: Any, lower: Any, 
                   G1[k], G2[k], G3[k], s[k], part[k])
 
 
-#: Unused channels at the end of each range's scratch rows, so that two threads never
-#: write one cache line (64 bytes, 16 float32).
-_PAD = 16
-
-
 class _CPRankSum(torch.autograd.Function):
     """``(T_x, T_y, T_z, T_t [C, R_a], lower, weights, rank) -> [N, F]``; gradients reach
     the lines only."""
@@ -214,15 +166,13 @@ class _CPRankSum(torch.autograd.Function):
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
         *lines, lower, weights = ctx.saved_tensors
         tables = [channel_rows(line).numpy() for line in lines]
-        # each range scatters into its own copy of the lines: worth it while the points
-        # outnumber the lines' rows
-        p = jit.parts(lower.shape[0], grain=max(jit.GRAIN, sum(t.shape[0] for t in tables)))
-        sums = [torch.zeros((p, *t.shape), dtype=lines[0].dtype) for t in tables]  # [P, R_a, C]
+        sums = scatter_copies(lower.shape[0], tables, lines[0].dtype, 8)  # [P, R_a, C] each
+        p = sums[0].shape[0]
         c, dtype = tables[0].shape[1], tables[0].dtype
-        samples = np.empty((p, 4, c + _PAD), dtype)
-        part = np.empty((p, 5, c + _PAD), dtype)
+        samples = np.empty((p, 4, c + PAD), dtype)
+        part = np.empty((p, 5, c + PAD), dtype)
         feature = np.arange(c, dtype=np.int64) // ctx.rank
-        args = (*tables, _sizes(lines), lower.numpy(), weights.numpy(), feature,
+        args = (*tables, sizes_of(lines, 1), lower.numpy(), weights.numpy(), feature,
                 grad.contiguous().numpy())
         if p == 1:
             _backward(*args, *(s[0].numpy() for s in sums), samples[0], part[0])
@@ -231,23 +181,18 @@ class _CPRankSum(torch.autograd.Function):
         return (*(s.sum(0).t() for s in sums), None, None, None)
 
 
-def _sizes(lines: Sequence[Tensor]) -> np.ndarray:
-    """``[4]`` int64: each line's vertex count."""
-    return np.array([line.shape[1] for line in lines], dtype=np.int64)
-
-
 def _read(lines: Sequence[Tensor], lower: Tensor, weights: Tensor, rank: int) -> Tensor:
     """The forward pass: ``[N, F]``."""
     c = lines[0].shape[0]
     out = lines[0].new_empty(lower.shape[0], c // rank)
     dtype = out.numpy().dtype
     p = jit.parts(lower.shape[0])
-    args = (*(channel_rows(line).numpy() for line in lines), _sizes(lines), lower.numpy(),
+    args = (*(channel_rows(line).numpy() for line in lines), sizes_of(lines, 1), lower.numpy(),
             weights.numpy(), rank, out.numpy())
     if p == 1:
         _forward(*args, np.empty((4, c), dtype), np.empty(c, dtype))
     else:
-        _forward_parts(*args, np.empty((p, 4, c + _PAD), dtype), np.empty((p, c + _PAD), dtype))
+        _forward_parts(*args, np.empty((p, 4, c + PAD), dtype), np.empty((p, c + PAD), dtype))
     return out
 
 
@@ -255,14 +200,8 @@ def supported(lines: Sequence[Tensor], coords: Tensor, align_corners: Sequence[b
     """Whether :func:`cp_rank_sum` serves this call: numba present, four lines ``[C, R_a]``
     of one ``C`` and one float32/float64 dtype on the CPU, one sampling convention,
     coordinates ``[N, 4]`` of that dtype that need no gradient."""
-    return (AVAILABLE and len(lines) == 4 and all(line.dim() == 2 for line in lines)
-            and len({line.shape[0] for line in lines}) == 1 and len(set(align_corners)) == 1
-            and coords.dim() == 2 and coords.shape[1] == 4
-            and all(line.device.type == "cpu" and line.dtype == coords.dtype
-                    for line in lines)
-            and coords.dtype in (torch.float32, torch.float64)
-            and coords.device.type == "cpu"
-            and not (coords.requires_grad and torch.is_grad_enabled()))
+    return (len(lines) == 4 and all(line.dim() == 2 for line in lines)
+            and len(set(align_corners)) == 1 and supported_factors(list(lines), coords))
 
 
 def cp_rank_sum(lines: Sequence[Tensor], coords: Tensor, align_corners: Sequence[bool],

@@ -27,7 +27,8 @@ from collections.abc import Sequence
 
 from torch import Tensor
 
-from baselines.factorised import FactorisedField
+from baselines.factorised import FEATURES, FactorisedField
+from baselines.hex_fused import hex_rank_sum
 from baselines.schedules import GrowthPlan
 from eventrecon.errors import InputError
 
@@ -84,3 +85,11 @@ class HexPlaneField(FactorisedField):
     def combine(self, samples: list[Tensor]) -> Tensor:
         """``Σ_k P_space,k · P_spacetime,k · v_k`` per channel."""
         return sum(samples[k] * samples[k + 3] * samples[k + 6] for k in range(3))
+
+    def rank_sum(self, coords: Tensor, features: int = FEATURES) -> Tensor:
+        """On a CPU one compiled pass over the nine factors (:mod:`baselines.hex_fused`:
+        the same gradients to the bit, the rank sum to rounding); factor by factor
+        elsewhere."""
+        fused = hex_rank_sum(self.grids.leading(self.channels(features)), self.grids.axes,
+                             coords, self.grids.align_corners, self.grids.padding, self.rank)
+        return super().rank_sum(coords, features) if fused is None else fused

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import itertools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from eventrecon.render.compiled import (
@@ -51,12 +51,15 @@ __all__ = ["AVAILABLE", "SOURCES", "drop_stale_cache", "njit", "njit_borrowing",
 SOURCES = ("jit.py", "compiled_paths.py", "compiled_core.py", "merge.py", "crossing.py")
 
 
-def drop_stale_cache(package: Path = Path(__file__).parent) -> bool:
+def drop_stale_cache(package: Path = Path(__file__).parent,
+                     sources: Sequence[str] = SOURCES) -> bool:
     """Delete numba's cache files in ``package/__pycache__`` unless they were made from
-    the :data:`SOURCES` as they are now (a SHA-1 of them all, kept beside the cache).
-    Returns whether anything was dropped. A read-only package is left as it is."""
+    the ``sources`` (file names in ``package``; this package's :data:`SOURCES` by default)
+    as they are now (a SHA-1 of them all, kept beside the cache). Returns whether anything
+    was dropped. A read-only package is left as it is. Another package whose kernels
+    inline one another's helpers calls it on import with its own files."""
     cache = package / "__pycache__"
-    digest = hashlib.sha1(b"".join((package / name).read_bytes() for name in SOURCES
+    digest = hashlib.sha1(b"".join((package / name).read_bytes() for name in sources
                                    if (package / name).exists())).hexdigest()
     stamp = cache / "numba_sources.sha1"
     try:
