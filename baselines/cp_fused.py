@@ -43,13 +43,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-import eventrecon.sim.jit as jit
 from baselines.fused_kernels import (
     PAD,
     axpy,
     line_sample,
     line_vertices,
     rank_sums,
+    run_forward,
     scatter_copies,
     sizes_of,
     supported_factors,
@@ -185,14 +185,9 @@ def _read(lines: Sequence[Tensor], lower: Tensor, weights: Tensor, rank: int) ->
     """The forward pass: ``[N, F]``."""
     c = lines[0].shape[0]
     out = lines[0].new_empty(lower.shape[0], c // rank)
-    dtype = out.numpy().dtype
-    p = jit.parts(lower.shape[0])
     args = (*(channel_rows(line).numpy() for line in lines), sizes_of(lines, 1), lower.numpy(),
             weights.numpy(), rank, out.numpy())
-    if p == 1:
-        _forward(*args, np.empty((4, c), dtype), np.empty(c, dtype))
-    else:
-        _forward_parts(*args, np.empty((p, 4, c + PAD), dtype), np.empty((p, c + PAD), dtype))
+    run_forward(_forward, _forward_parts, args, lower.shape[0], 4, c, out.numpy().dtype)
     return out
 
 

@@ -27,7 +27,7 @@ import eventrecon.sim.jit as jit
 from eventrecon.sim.jit import AVAILABLE, drop_stale_cache, njit_inline
 
 __all__ = ["PAD", "SOURCES", "axpy", "line_sample", "line_vertices", "rank_sums",
-           "scatter_copies", "sizes_of", "supported_factors"]
+           "run_forward", "scatter_copies", "sizes_of", "supported_factors"]
 
 #: The modules whose compiled kernels inline one another's helpers.
 SOURCES = ("fused_kernels.py", "cp_fused.py", "hex_fused.py")
@@ -102,6 +102,20 @@ def sizes_of(factors: list[Tensor], axis: int) -> np.ndarray:
     """``[len(factors)]`` int64: each factor's vertex count along grid ``axis`` (1 = the
     first axis after the channels)."""
     return np.array([f.shape[axis] for f in factors], dtype=np.int64)
+
+
+def run_forward(kernel: Any, kernel_parts: Any, args: tuple, n_points: int, n_factors: int,
+                channels: int, dtype: Any) -> None:
+    """A fused forward pass over ``n_points``: ``kernel(*args, s, acc)`` with scratch
+    ``s [n_factors, C]`` and ``acc [C]``, or, where the points split into ``P > 1``
+    ranges (:func:`eventrecon.sim.jit.parts`), ``kernel_parts`` with each range's
+    scratch padded apart (:data:`PAD`)."""
+    p = jit.parts(n_points)
+    if p == 1:
+        kernel(*args, np.empty((n_factors, channels), dtype), np.empty(channels, dtype))
+    else:
+        kernel_parts(*args, np.empty((p, n_factors, channels + PAD), dtype),
+                     np.empty((p, channels + PAD), dtype))
 
 
 def scatter_copies(n_points: int, tables: list[np.ndarray], dtype: torch.dtype,

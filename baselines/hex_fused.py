@@ -43,13 +43,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-import eventrecon.sim.jit as jit
 from baselines.fused_kernels import (
     PAD,
     axpy,
     line_sample,
     line_vertices,
     rank_sums,
+    run_forward,
     scatter_copies,
     supported_factors,
 )
@@ -339,13 +339,8 @@ def _read(factors: Sequence[Tensor], corners: _Corners, rank: int) -> Tensor:
     c = planes[0].shape[1]
     n = corners.lo_p.shape[0]
     out = factors[0].new_empty(n, c // rank)
-    dtype = out.numpy().dtype
-    p = jit.parts(n)
     args = (planes, lines, *corners.args(), rank, out.numpy())
-    if p == 1:
-        _forward(*args, np.empty((9, c), dtype), np.empty(c, dtype))
-    else:
-        _forward_parts(*args, np.empty((p, 9, c + PAD), dtype), np.empty((p, c + PAD), dtype))
+    run_forward(_forward, _forward_parts, args, n, 9, c, out.numpy().dtype)
     return out
 
 

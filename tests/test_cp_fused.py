@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from fused_pairs import fused_and_by_factor, split_between_two_threads
 
 import baselines.tensorf_cp as tensorf_cp
 from baselines import TensoRFCPField
@@ -14,8 +15,7 @@ from baselines.cp_fused import cp_rank_sum, supported
 from baselines.factorised import FEATURES
 from baselines.grids import channels_last, sample_grid_reference, sample_points
 from eventrecon.errors import InputError
-from eventrecon.sim.jit import GRAIN, numba_threads, parts
-from eventrecon.sim.pipeline import torch_threads
+from eventrecon.sim.jit import GRAIN, numba_threads
 
 
 def _lines(rank: int, sizes: tuple[int, ...], dtype: torch.dtype, seed: int = 0):
@@ -116,17 +116,7 @@ def test_the_cases_left_to_the_line_by_line_path():
 def test_the_tensorf_cp_field_fused_equals_the_field_line_by_line(monkeypatch):
     field = TensoRFCPField(rank=4, resolution_init=(9, 8, 7, 6), resolution_final=(9, 8, 7, 6),
                            n_stages=1)
-    g = torch.Generator().manual_seed(3)
-    xyz, t = torch.rand(300, 3, generator=g) * 2 - 1, torch.rand(300, 1, generator=g)
-    out = []
-    for fused in (True, False):
-        if not fused:
-            monkeypatch.setattr(tensorf_cp, "cp_rank_sum", lambda *a, **k: None)
-        field.zero_grad(set_to_none=True)
-        with torch_threads(1):
-            sigma, rgb = field(xyz, t)
-        (sigma.sum() + rgb.sum()).backward()
-        out.append((sigma.detach(), rgb.detach(), [p.grad.clone() for p in field.grids.factors]))
+    out = fused_and_by_factor(field, tensorf_cp, "cp_rank_sum", monkeypatch)
     (s1, c1, g1), (s2, c2, g2) = out
     assert torch.allclose(s1, s2, rtol=1e-5) and torch.allclose(c1, c2, rtol=1e-5, atol=1e-7)
     for a, b in zip(g1, g2):
@@ -140,29 +130,10 @@ def test_split_between_two_threads_same_values_and_the_halves_gradients_summed(m
     one-thread gradient (the ranges scatter into their own copies, added once)."""
     import baselines.cp_fused as cp_fused
 
-    split = {k: [] for k in ("_forward_parts", "_backward_parts")}
-    for name, calls in split.items():
-        kernel = getattr(cp_fused, name)
-        monkeypatch.setattr(cp_fused, name,
-                            lambda *a, c=calls, f=kernel: (c.append(1), f(*a))[1])
     n = 4 * GRAIN
     lines = _lines(16, (40, 23, 16, 24), torch.float32)
-    coords = _coords(n, torch.float32)
-    w = torch.randn(n, FEATURES, generator=torch.Generator().manual_seed(2))
-
-    def run(rows: slice) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
-        out = cp_rank_sum(lines, coords[rows], [False] * 4, "zeros", 16)
-        return out.detach(), torch.autograd.grad((out * w[rows]).sum(), lines)
-
-    with torch_threads(1):
-        one, _ = run(slice(None))
-        halves = [run(slice(0, n // 2))[1], run(slice(n // 2, n))[1]]
-    with torch_threads(2):
-        assert parts(n, GRAIN) == 2
-        two, g_two = run(slice(None))
-        with torch.no_grad():
-            assert torch.equal(cp_rank_sum(lines, coords, [False] * 4, "zeros", 16), one)
-    assert torch.equal(two, one)
-    for a, b0, b1 in zip(g_two, *halves):
-        assert torch.equal(a, b0 + b1)
-    assert {k: len(v) for k, v in split.items()} == {"_forward_parts": 2, "_backward_parts": 1}
+    counts = split_between_two_threads(
+        cp_fused, lambda c: cp_rank_sum(lines, c, [False] * 4, "zeros", 16), lines,
+        _coords(n, torch.float32), monkeypatch)
+    # the no-grad forward ran once more on two threads
+    assert counts == {"_forward_parts": 2, "_backward_parts": 1}

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from fused_pairs import fused_and_by_factor, split_between_two_threads
 
 import baselines.hexplane as hexplane
 from baselines import HexPlaneField
@@ -15,7 +16,7 @@ from baselines.factorised import FEATURES, FactorisedField
 from baselines.grids import sample_grid_reference
 from baselines.hex_fused import hex_rank_sum, supported
 from eventrecon.errors import InputError
-from eventrecon.sim.jit import GRAIN, numba_threads, parts
+from eventrecon.sim.jit import GRAIN, numba_threads
 from eventrecon.sim.pipeline import torch_threads
 
 
@@ -128,17 +129,7 @@ def test_the_cases_left_to_the_factor_by_factor_path():
 
 def test_the_hexplane_field_fused_equals_the_field_factor_by_factor(monkeypatch):
     field = _field(resolution=(10, 10, 10, 6), rank=4)
-    g = torch.Generator().manual_seed(3)
-    xyz, t = torch.rand(400, 3, generator=g) * 2 - 1, torch.rand(400, 1, generator=g)
-    out = []
-    for fused in (True, False):
-        if not fused:
-            monkeypatch.setattr(hexplane, "hex_rank_sum", lambda *a, **k: None)
-        field.zero_grad(set_to_none=True)
-        with torch_threads(1):
-            sigma, rgb = field(xyz, t)
-            (sigma.sum() + rgb.sum()).backward()
-        out.append((sigma.detach(), rgb.detach(), [p.grad.clone() for p in field.grids.factors]))
+    out = fused_and_by_factor(field, hexplane, "hex_rank_sum", monkeypatch, n=400)
     (s1, c1, g1), (s2, c2, g2) = out
     assert torch.allclose(s1, s2, rtol=1e-5) and torch.allclose(c1, c2, rtol=1e-5, atol=1e-7)
     for a, b in zip(g1, g2):
@@ -152,28 +143,9 @@ def test_split_between_two_threads_same_values_and_the_halves_gradients_summed(m
     one-thread gradient (the ranges scatter into their own copies, added once)."""
     import baselines.hex_fused as hex_fused
 
-    split = {k: [] for k in ("_forward_parts", "_backward_parts")}
-    for name, calls in split.items():
-        kernel = getattr(hex_fused, name)
-        monkeypatch.setattr(hex_fused, name,
-                            lambda *a, c=calls, k=kernel: (c.append(1), k(*a))[1])
     n = 4 * GRAIN
     f = _field(resolution=(16, 16, 16, 8), rank=4)
-    params = list(f.grids.factors)
-    coords = _coords(n, torch.float32)
-    w = torch.randn(n, FEATURES, generator=torch.Generator().manual_seed(2))
-
-    def run(rows: slice) -> tuple[torch.Tensor, tuple[torch.Tensor, ...]]:
-        out = _fused(f, coords[rows])
-        return out.detach(), torch.autograd.grad((out * w[rows]).sum(), params)
-
-    with torch_threads(1):
-        one, _ = run(slice(None))
-        halves = [run(slice(0, n // 2))[1], run(slice(n // 2, n))[1]]
-    with torch_threads(2):
-        assert parts(n, GRAIN) == 2
-        two, g_two = run(slice(None))
-    assert torch.equal(two, one)
-    for a, b0, b1 in zip(g_two, *halves):
-        assert torch.equal(a, b0 + b1)
-    assert {k: len(v) for k, v in split.items()} == {"_forward_parts": 1, "_backward_parts": 1}
+    counts = split_between_two_threads(hex_fused, lambda c: _fused(f, c),
+                                       list(f.grids.factors), _coords(n, torch.float32),
+                                       monkeypatch)
+    assert counts == {"_forward_parts": 2, "_backward_parts": 1}
