@@ -30,8 +30,9 @@ factor-by-factor sampling followed by :meth:`baselines.hexplane.HexPlaneField.co
 so on one thread the factors' gradients are the same to the bit (split between threads,
 to the rounding of the ranges' sum); the forward's rank sum runs in another order than
 ``Tensor.sum``, so ``o`` agrees to rounding. Where :func:`supported` is false (a GPU, no
-numba, coordinates that need a gradient, factors of other shapes) :func:`hex_rank_sum`
-returns ``None`` and the caller samples factor by factor.
+numba, coordinates that need a gradient, factors of other shapes, or factors too large
+to stay in cache: :data:`MAX_BYTES`, the authors' 500² planes among them)
+:func:`hex_rank_sum` returns ``None`` and the caller samples factor by factor.
 """
 
 from __future__ import annotations
@@ -61,6 +62,13 @@ __all__ = ["hex_rank_sum", "supported"]
 
 #: Points per block of the backward pass (:func:`_backward`).
 BLOCK = 64
+#: The fused pass serves factors of at most this many bytes in all: every point reads all
+#: nine, so they must stay near the core. On the 2-core Zen 4 EPYC (1 MB L2 per core), at
+#: 13 605 points along rays, rank 8, two threads, forward and backward: 5.4–5.7 against
+#: 9.3–10.5 ms at 64 vertices per axis (2.0 MB of factors), 6.6–10.7 against 9.3–14.3 at 96
+#: (4.4 MB), 14.3–18.5 against 14.5–15.0 at 128 (7.5 MB), 30–32 against 16–21 at 256
+#: (docs/results/history.md, "Session 63"). Larger factors are sampled one by one.
+MAX_BYTES = 6 << 20
 
 
 @njit_inline
@@ -346,11 +354,12 @@ def _read(factors: Sequence[Tensor], corners: _Corners, rank: int) -> Tensor:
 
 def supported(factors: Sequence[Tensor], coords: Tensor, align_corners: Sequence[bool]) -> bool:
     """Whether :func:`hex_rank_sum` serves this call: six planes ``[C, R_a, R_b]`` of one
-    sampling convention, then three lines ``[C, R]`` of one, and the conditions of
-    :func:`~baselines.fused_kernels.supported_factors`."""
+    sampling convention, then three lines ``[C, R]`` of one, at most :data:`MAX_BYTES` in
+    all, and the conditions of :func:`~baselines.fused_kernels.supported_factors`."""
     return (len(factors) == 9 and all(f.dim() == 3 for f in factors[:6])
             and all(f.dim() == 2 for f in factors[6:]) and len(align_corners) == 9
             and len(set(align_corners[:6])) == 1 and len(set(align_corners[6:])) == 1
+            and sum(f.numel() * f.element_size() for f in factors) <= MAX_BYTES
             and supported_factors(list(factors), coords))
 
 

@@ -10,6 +10,7 @@ import pytest
 import torch
 from fused_pairs import fused_and_by_factor, split_between_two_threads
 
+import baselines.hex_fused as hex_fused
 import baselines.hexplane as hexplane
 from baselines import HexPlaneField
 from baselines.factorised import FEATURES, FactorisedField
@@ -108,7 +109,7 @@ def test_a_non_finite_coordinate_reads_nan_and_a_corner_outside_is_not_read():
     assert all(g.abs().sum() == 0 for g in torch.autograd.grad(empty.sum(), f.grids.factors))
 
 
-def test_the_cases_left_to_the_factor_by_factor_path():
+def test_the_cases_left_to_the_factor_by_factor_path(monkeypatch):
     f = _field()
     g, coords = f.grids, _coords(10, torch.float32)
     factors = g.leading(None)
@@ -123,6 +124,13 @@ def test_the_cases_left_to_the_factor_by_factor_path():
     assert hex_rank_sum(factors, g.axes, coords, mixed, "zeros", 3) is None
     assert not supported([p.to("meta") for p in factors], coords, g.align_corners)
     assert hex_rank_sum(factors, g.axes, coords[:, :3], g.align_corners, "zeros", 3) is None
+    with monkeypatch.context() as m:                             # too large to stay in cache
+        m.setattr(hex_fused, "MAX_BYTES", sum(f.numel() * 4 for f in factors) - 4)
+        assert hex_rank_sum(factors, g.axes, coords, g.align_corners, "zeros", 3) is None
+    assert hex_rank_sum(factors, g.axes, coords, g.align_corners, "zeros", 3) is not None
+    paper = [torch.empty(32, 500, 500)] * 3 + [torch.empty(32, 500, 24)] * 3 \
+        + [torch.empty(32, 500)] * 3                                # the authors' size
+    assert not supported(paper, coords, g.align_corners)
     with pytest.raises(InputError, match="rank: expected a divisor of the factors' 12 channels"):
         hex_rank_sum(factors, g.axes, coords, g.align_corners, "zeros", 5)
 
@@ -141,8 +149,6 @@ def test_split_between_two_threads_same_values_and_the_halves_gradients_summed(m
     """With two torch threads the points run as two ranges on numba's threads: the same
     values to the bit, and the factors' gradients exactly the sum of each half's
     one-thread gradient (the ranges scatter into their own copies, added once)."""
-    import baselines.hex_fused as hex_fused
-
     n = 4 * GRAIN
     f = _field(resolution=(16, 16, 16, 8), rank=4)
     counts = split_between_two_threads(hex_fused, lambda c: _fused(f, c),
