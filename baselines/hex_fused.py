@@ -65,7 +65,7 @@ BLOCK = 64
 #: The fused pass serves factors of at most this many bytes in all: every point reads all
 #: nine, so they must stay near the core. On the 2-core Zen 4 EPYC (1 MB L2 per core), at
 #: 13 605 points along rays, rank 8, two threads, forward and backward: 5.4–5.7 against
-#: 9.3–10.5 ms at 64 vertices per axis (2.0 MB of factors), 6.6–10.7 against 9.3–14.3 at 96
+#: 9.3–10.5 ms at 64 vertices per axis (2.2 MB of factors), 6.6–10.7 against 9.3–14.3 at 96
 #: (4.4 MB), 14.3–18.5 against 14.5–15.0 at 128 (7.5 MB), 30–32 against 16–21 at 256
 #: (docs/results/history.md, "Session 63"). Larger factors are sampled one by one.
 MAX_BYTES = 6 << 20
