@@ -51,7 +51,6 @@ from baselines.fused_kernels import (
     rank_sums,
     run_forward,
     scatter_copies,
-    sizes_of,
     supported_factors,
 )
 from baselines.interp import channel_rows, vertex_corners
@@ -172,7 +171,7 @@ class _CPRankSum(torch.autograd.Function):
         samples = np.empty((p, 4, c + PAD), dtype)
         part = np.empty((p, 5, c + PAD), dtype)
         feature = np.arange(c, dtype=np.int64) // ctx.rank
-        args = (*tables, sizes_of(lines, 1), lower.numpy(), weights.numpy(), feature,
+        args = (*tables, _sizes(lines), lower.numpy(), weights.numpy(), feature,
                 grad.contiguous().numpy())
         if p == 1:
             _backward(*args, *(s[0].numpy() for s in sums), samples[0], part[0])
@@ -181,11 +180,16 @@ class _CPRankSum(torch.autograd.Function):
         return (*(s.sum(0).t() for s in sums), None, None, None)
 
 
+def _sizes(lines: Sequence[Tensor]) -> np.ndarray:
+    """``[4]`` int64: each line's vertex count."""
+    return np.array([line.shape[1] for line in lines], dtype=np.int64)
+
+
 def _read(lines: Sequence[Tensor], lower: Tensor, weights: Tensor, rank: int) -> Tensor:
     """The forward pass: ``[N, F]``."""
     c = lines[0].shape[0]
     out = lines[0].new_empty(lower.shape[0], c // rank)
-    args = (*(channel_rows(line).numpy() for line in lines), sizes_of(lines, 1), lower.numpy(),
+    args = (*(channel_rows(line).numpy() for line in lines), _sizes(lines), lower.numpy(),
             weights.numpy(), rank, out.numpy())
     run_forward(_forward, _forward_parts, args, lower.shape[0], 4, c, out.numpy().dtype)
     return out

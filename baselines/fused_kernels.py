@@ -10,8 +10,9 @@ non-finite coordinate), plus each corner inside the factor in corner order -- so
 kernel's gradients are the factor-by-factor path's to the bit on one thread.
 
 The fused kernels inline these helpers, and numba keys a kernel's cache on its own file
-only, so the three files (:data:`SOURCES`) are hashed together on import and their
-caches dropped when one changes (:func:`eventrecon.sim.jit.drop_stale_cache`).
+only, so the three files (:data:`SOURCES`) are hashed together on import, and when one
+changes every numba cache file of ``baselines/`` is dropped (the other modules' kernels
+too: they compile again once; :func:`eventrecon.sim.jit.drop_stale_cache`).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import eventrecon.sim.jit as jit
 from eventrecon.sim.jit import AVAILABLE, drop_stale_cache, njit_inline
 
 __all__ = ["PAD", "SOURCES", "axpy", "line_sample", "line_vertices", "rank_sums",
-           "run_forward", "scatter_copies", "sizes_of", "supported_factors"]
+           "run_forward", "scatter_copies", "supported_factors"]
 
 #: The modules whose compiled kernels inline one another's helpers.
 SOURCES = ("fused_kernels.py", "cp_fused.py", "hex_fused.py")
@@ -98,12 +99,6 @@ def rank_sums(prod: Any, rank: int, c_all: int, out: Any, n: int) -> None:
         out[n, f] = acc
 
 
-def sizes_of(factors: list[Tensor], axis: int) -> np.ndarray:
-    """``[len(factors)]`` int64: each factor's vertex count along grid ``axis`` (1 = the
-    first axis after the channels)."""
-    return np.array([f.shape[axis] for f in factors], dtype=np.int64)
-
-
 def run_forward(kernel: Any, kernel_parts: Any, args: tuple, n_points: int, n_factors: int,
                 channels: int, dtype: Any) -> None:
     """A fused forward pass over ``n_points``: ``kernel(*args, s, acc)`` with scratch
@@ -122,10 +117,10 @@ def scatter_copies(n_points: int, tables: list[np.ndarray], dtype: torch.dtype,
                    corners: int) -> list[Tensor]:
     """Zeroed gradients ``[P, rows, C]`` for each table, one copy per range of the
     points that the backward pass runs on its own thread (``corners``: the rows each
-    point scatters into, over all tables). ``P`` ranges while a range's points scatter
-    into more rows than its copies add (:func:`eventrecon.sim.jit.parts`, at least
-    :data:`~eventrecon.sim.jit.GRAIN` points a range; the rule of
-    :mod:`baselines.interp`'s scatter)."""
+    point scatters into, over all tables). ``P`` ranges while each range's row writes
+    (its points times ``corners``) are at least its copies' rows, and it has at least
+    :data:`~eventrecon.sim.jit.GRAIN` points (:func:`eventrecon.sim.jit.parts`; the rule
+    of :mod:`baselines.interp`'s scatter)."""
     rows = sum(t.shape[0] for t in tables)
     p = jit.parts(n_points, grain=max(jit.GRAIN, rows // max(corners, 1)))
     return [torch.zeros((p, *t.shape), dtype=dtype) for t in tables]

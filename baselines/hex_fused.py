@@ -67,7 +67,10 @@ BLOCK = 64
 #: 13 605 points along rays, rank 8, two threads, forward and backward: 5.4–5.7 against
 #: 9.3–10.5 ms at 64 vertices per axis (2.2 MB of factors), 6.6–10.7 against 9.3–14.3 at 96
 #: (4.4 MB), 14.3–18.5 against 14.5–15.0 at 128 (7.5 MB), 30–32 against 16–21 at 256
-#: (docs/results/history.md, "Session 63"). Larger factors are sampled one by one.
+#: (docs/results/history.md, "Session 63"). Larger factors are sampled one by one. The
+#: bound applies to the factors as read: the density's leading channels alone (the
+#: occupancy grid's queries) count a quarter of the bytes (their compact copy is what the
+#: pass reads; not measured apart).
 MAX_BYTES = 6 << 20
 
 
@@ -282,6 +285,10 @@ class _Corners:
     @staticmethod
     def _group(factors: Sequence[Tensor], axes: Sequence[Sequence[int]], coords: Tensor,
                align: bool, padding: str) -> tuple:
+        """``(cols [M, d], sizes [K], lower [N, K], weights [N, K, 2])`` for ``M`` factors
+        of ``d`` grid axes read with one convention: the ``K`` distinct (coordinate axis,
+        vertex count) pairs they read, each a column of ``lower`` (int64) and ``weights``,
+        and which column each factor's grid axis reads."""
         keys: list[tuple[int, int]] = []
         cols = []
         for f, ax in zip(factors, axes):
@@ -297,6 +304,7 @@ class _Corners:
                 lower.numpy(), weights.numpy())
 
     def args(self) -> tuple:
+        """The kernels' corner arguments, in their order."""
         return (self.pcol, self.lcol, self.psz, self.lsz, self.lo_p, self.w_p, self.lo_l,
                 self.w_l)
 
@@ -308,7 +316,7 @@ def _tables(factors: Sequence[Tensor]) -> tuple[tuple[np.ndarray, ...], tuple[np
 
 
 class _HexRankSum(torch.autograd.Function):
-    """``(nine factors, corners, rank) -> [N, F]``; gradients reach the factors only."""
+    """``(corners, rank, *nine factors) -> [N, F]``; gradients reach the factors only."""
 
     @staticmethod
     def forward(ctx: Any, corners: _Corners, rank: int, *factors: Tensor) -> Tensor:  # type: ignore[override]
@@ -352,12 +360,16 @@ def _read(factors: Sequence[Tensor], corners: _Corners, rank: int) -> Tensor:
     return out
 
 
-def supported(factors: Sequence[Tensor], coords: Tensor, align_corners: Sequence[bool]) -> bool:
+def supported(factors: Sequence[Tensor], axes: Sequence[Sequence[int]], coords: Tensor,
+              align_corners: Sequence[bool]) -> bool:
     """Whether :func:`hex_rank_sum` serves this call: six planes ``[C, R_a, R_b]`` of one
-    sampling convention, then three lines ``[C, R]`` of one, at most :data:`MAX_BYTES` in
-    all, and the conditions of :func:`~baselines.fused_kernels.supported_factors`."""
+    sampling convention, then three lines ``[C, R]`` of one (``axes``: one coordinate
+    column per grid axis of each), at most :data:`MAX_BYTES` in all, and the conditions of
+    :func:`~baselines.fused_kernels.supported_factors`."""
     return (len(factors) == 9 and all(f.dim() == 3 for f in factors[:6])
             and all(f.dim() == 2 for f in factors[6:]) and len(align_corners) == 9
+            and len(axes) == 9 and all(len(a) == f.dim() - 1 for a, f in zip(axes, factors))
+            and all(0 <= c < 4 for a in axes for c in a)
             and len(set(align_corners[:6])) == 1 and len(set(align_corners[6:])) == 1
             and sum(f.numel() * f.element_size() for f in factors) <= MAX_BYTES
             and supported_factors(list(factors), coords))
@@ -368,8 +380,12 @@ def hex_rank_sum(factors: Sequence[Tensor], axes: Sequence[Sequence[int]], coord
     """``o [N, F]`` (module docstring) of the factors ``P_0..P_2, Q_0..Q_2, V_0..V_2`` at
     ``coords [N, 4]`` (``[-1, 1]``; factor ``m``'s grid axis ``d`` reads the column
     ``axes[m][d]``), differentiable with respect to the factors; ``None`` where
-    :func:`supported` is false."""
-    if not supported(factors, coords, align_corners):
+    :func:`supported` is false.
+
+    Raises:
+        InputError: ``rank`` does not divide the factors' channels.
+    """
+    if not supported(factors, axes, coords, align_corners):
         return None
     if rank < 1 or factors[0].shape[0] % rank:
         raise InputError("baselines.hex_fused", "rank",

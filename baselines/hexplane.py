@@ -87,9 +87,9 @@ class HexPlaneField(FactorisedField):
         return sum(samples[k] * samples[k + 3] * samples[k + 6] for k in range(3))
 
     def rank_sum(self, coords: Tensor, features: int = FEATURES) -> Tensor:
-        """On a CPU one compiled pass over the nine factors (:mod:`baselines.hex_fused`:
-        the same gradients to the bit, the rank sum to rounding); factor by factor
-        elsewhere."""
+        """On a CPU, for factors that stay in cache, one compiled pass over the nine
+        (:mod:`baselines.hex_fused`: on one thread the same gradients to the bit, the rank
+        sum to rounding); factor by factor elsewhere."""
         fused = hex_rank_sum(self.grids.leading(self.channels(features)), self.grids.axes,
                              coords, self.grids.align_corners, self.grids.padding, self.rank)
         return super().rank_sum(coords, features) if fused is None else fused

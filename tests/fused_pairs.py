@@ -18,13 +18,18 @@ from eventrecon.sim.pipeline import torch_threads
 def fused_and_by_factor(field: torch.nn.Module, module: ModuleType, name: str,
                         monkeypatch: pytest.MonkeyPatch, n: int = 300) -> list[tuple]:
     """``[(sigma, rgb, factor gradients)]`` of ``field`` at ``n`` random points on one
-    thread: first as it is, then with ``module.name`` (its fused rank sum) declining, so
-    that the factors are sampled one by one. The gradients are of ``Σσ + Σrgb``."""
+    thread: first as it is (checking that ``module.name``, its fused rank sum, served
+    every call), then with that function declining, so that the factors are sampled one
+    by one. The gradients are of ``Σσ + Σrgb``."""
     g = torch.Generator().manual_seed(3)
     xyz, t = torch.rand(n, 3, generator=g) * 2 - 1, torch.rand(n, 1, generator=g)
-    out = []
+    out, served = [], []
+    real = getattr(module, name)
+    monkeypatch.setattr(module, name, lambda *a, **k: served.append(real(*a, **k))
+                        or served[-1])
     for fused in (True, False):
         if not fused:
+            assert served and all(r is not None for r in served)   # the fused pass ran
             monkeypatch.setattr(module, name, lambda *a, **k: None)
         field.zero_grad(set_to_none=True)
         with torch_threads(1):

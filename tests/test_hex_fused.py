@@ -90,30 +90,38 @@ def test_density_only_reads_the_leading_channels_and_its_gradient_reaches_them_o
 
 
 def test_a_non_finite_coordinate_reads_nan_and_a_corner_outside_is_not_read():
+    """A point below the grid's lower edge has its lower corner at vertex −1, outside: it
+    must read vertex 0 only, not wrap round to the last row (made non-finite here, a
+    diverged parameter); NaN and inf coordinates read NaN; the gradients, NaN included,
+    are the factor-by-factor path's."""
     f = _field()
     coords = _coords(60, torch.float32)
     coords[7, 2], coords[9, 3] = float("nan"), float("inf")
-    # a plane vertex made non-finite (a diverged parameter): row 0 of the xy plane
-    with torch.no_grad():
-        f.grids.factors[0][:, 0, 0] = float("inf")
-    coords[11] = torch.tensor([0.95, 0.95, 0.0, 0.0])          # far from vertex (0, 0)
-    coords[12] = torch.tensor([-1.0, -1.0, 0.0, 0.0])          # on it
+    with torch.no_grad():                       # P_xy reads y along its first grid axis
+        f.grids.factors[0][:, -1, :] = float("inf")
+    coords[11] = torch.tensor([0.0, -1.05, 0.0, 0.0])           # y below the lower edge
+    coords[12] = torch.tensor([0.0, 1.0, 0.0, 0.0])             # on the last row
+    params = list(f.grids.factors)
     with torch_threads(1):
         fused = _fused(f, coords)
+        g = torch.autograd.grad(fused[:11].sum(), params)
         ref = FactorisedField.rank_sum(f, coords)
+        g_ref = torch.autograd.grad(ref[:11].sum(), params)
     assert fused[7].isnan().all() and fused[9].isnan().all()
     assert torch.equal(fused.isnan(), ref.isnan())
     assert torch.isfinite(fused[11]).all() and not torch.isfinite(fused[12]).all()
+    for a, b in zip(g, g_ref):
+        torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True)
     empty = _fused(f, coords[:0])
     assert empty.shape == (0, FEATURES)
-    assert all(g.abs().sum() == 0 for g in torch.autograd.grad(empty.sum(), f.grids.factors))
+    assert all(g.abs().sum() == 0 for g in torch.autograd.grad(empty.sum(), params))
 
 
 def test_the_cases_left_to_the_factor_by_factor_path(monkeypatch):
     f = _field()
     g, coords = f.grids, _coords(10, torch.float32)
     factors = g.leading(None)
-    assert supported(factors, coords, g.align_corners)
+    assert supported(factors, g.axes, coords, g.align_corners)
     assert hex_rank_sum(factors, g.axes, coords.double(), g.align_corners, "zeros", 3) is None
     assert hex_rank_sum(factors, g.axes, coords.requires_grad_(True), g.align_corners,
                         "zeros", 3) is None                     # coordinates with a gradient
@@ -122,7 +130,7 @@ def test_the_cases_left_to_the_factor_by_factor_path(monkeypatch):
                         3) is None                              # eight factors
     mixed = [True] * 5 + [False] * 4                            # planes of two conventions
     assert hex_rank_sum(factors, g.axes, coords, mixed, "zeros", 3) is None
-    assert not supported([p.to("meta") for p in factors], coords, g.align_corners)
+    assert not supported([p.to("meta") for p in factors], g.axes, coords, g.align_corners)
     assert hex_rank_sum(factors, g.axes, coords[:, :3], g.align_corners, "zeros", 3) is None
     with monkeypatch.context() as m:                             # too large to stay in cache
         m.setattr(hex_fused, "MAX_BYTES", sum(f.numel() * 4 for f in factors) - 4)
@@ -130,7 +138,8 @@ def test_the_cases_left_to_the_factor_by_factor_path(monkeypatch):
     assert hex_rank_sum(factors, g.axes, coords, g.align_corners, "zeros", 3) is not None
     paper = [torch.empty(32, 500, 500)] * 3 + [torch.empty(32, 500, 24)] * 3 \
         + [torch.empty(32, 500)] * 3                                # the authors' size
-    assert not supported(paper, coords, g.align_corners)
+    assert not supported(paper, g.axes, coords, g.align_corners)
+    assert not supported(factors, [*g.axes[:8], (0, 1)], coords, g.align_corners)  # a line of 2
     with pytest.raises(InputError, match="rank: expected a divisor of the factors' 12 channels"):
         hex_rank_sum(factors, g.axes, coords, g.align_corners, "zeros", 5)
 

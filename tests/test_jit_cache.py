@@ -32,3 +32,29 @@ def test_an_edit_of_an_inlined_helper_drops_the_caches_of_every_compiled_module(
     assert drop_stale_cache(pkg) is True          # another module changed: dropped
     assert _cache_files(pkg) == []
     assert drop_stale_cache(pkg) is False
+
+
+def test_the_fused_rank_sums_hash_their_own_files():
+    """The baselines' fused passes inline helpers of ``fused_kernels.py``: the three files
+    exist under the names hashed (a renamed one would silently leave the hash), and an
+    edit of the shared helpers drops a fused kernel's cache."""
+    import baselines.fused_kernels as fused_kernels
+
+    pkg = Path(fused_kernels.__file__).parent
+    assert all((pkg / name).is_file() for name in fused_kernels.SOURCES)
+    assert {"fused_kernels.py", "cp_fused.py", "hex_fused.py"} == set(fused_kernels.SOURCES)
+
+
+def test_another_package_with_its_own_sources(tmp_path):
+    sources = ("shared.py", "kernel.py")
+    for name in sources:
+        (tmp_path / name).write_text(f"# {name}\n")
+    (tmp_path / "__pycache__").mkdir()
+    assert drop_stale_cache(tmp_path, sources) is False    # nothing cached yet: stamped
+    (tmp_path / "__pycache__" / "kernel._fwd-10.py311.nbi").write_bytes(b"x")
+    assert drop_stale_cache(tmp_path, sources) is False    # same sources: kept
+    (tmp_path / "unrelated.py").write_text("# not hashed\n")
+    assert drop_stale_cache(tmp_path, sources) is False
+    (tmp_path / "shared.py").write_text("# an edited helper\n")
+    assert drop_stale_cache(tmp_path, sources) is True
+    assert _cache_files(tmp_path) == []
