@@ -15,6 +15,11 @@ field's own speed the whole step keeps (1 = the rest of the step costs nothing).
 Scene: the default ``spheres`` at the ``trainer=cpu`` preset (simulated into ``data/`` if
 missing). Medians over ``--reps`` steps after ``--warmup``.
 
+``--grids`` sets the size of a growing field's grids (TensoRF-CP's lines): ``final``
+(default), the size it trains at from the first few percent of a run on (``scale=cpu``:
+from step ~67 of 1000), or ``initial``, the fresh field's (16 vertices; before session
+63 the only choice, 14.3–16.6 against 16.0–21.1 ms per TensoRF-CP step at the final 500).
+
 ``--skip`` sets ``render.skip`` (default ``none``: every sample of a ray that hits the
 cylinder reaches the field, as the figures in ``docs/results/`` were taken). With
 ``--skip grid`` the occupancy grid is updated once from the fresh field before timing
@@ -65,14 +70,18 @@ def _median_time(fn: Callable[[], None], reps: int, warmup: int) -> float:
 
 
 def measure(overrides: list[str], reps: int, warmup: int, data_dir: str,
-            profile: bool = False, skip: str = "none") -> dict:
-    """Median seconds of the real and the bare step of one backbone configuration."""
+            profile: bool = False, skip: str = "none", grids: str = "final") -> dict:
+    """Median seconds of the real and the bare step of one backbone configuration
+    (``grids``: a growing field at its ``final`` or ``initial`` size)."""
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
         cfg = compose(config_name="config", overrides=[*overrides, f"data_dir={data_dir}",
                                                         f"render.skip={skip}"])
     ds = build.load_dataset(cfg)
     props = build.scene_properties(cfg, ds)
     module = build.build_module(cfg, props, ds.splits["train"], Segment(0.0, 1000.0))
+    plan = getattr(module.field, "plan", None)
+    if grids == "final" and plan is not None and plan.n_stages > 1:
+        module.field.upsample(plan.end)           # as GridGrowth leaves it
     opt = module.configure_optimizers()
     grid = module.renderer.occupancy
     if grid is not None:  # as OccupancyUpdate does at step 0
@@ -140,19 +149,23 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--data-dir", default="data")
     ap.add_argument("--skip", choices=("none", "grid"), default="none",
                     help="render.skip (grid: updated once from the fresh field)")
+    ap.add_argument("--grids", choices=("final", "initial"), default="final",
+                    help="a growing field's grids at their final or initial size")
     ap.add_argument("--profile", action="store_true", help="print the top operators of 3 steps")
     args = ap.parse_args(argv if argv is not None else [])
     torch.set_num_threads(args.threads)
     for name, over in BACKBONES.items():
         if args.only and name not in args.only:
             continue
-        r = measure(over, args.reps, args.warmup, args.data_dir, args.profile, args.skip)
+        r = measure(over, args.reps, args.warmup, args.data_dir, args.profile, args.skip,
+                    args.grids)
         log.info("%-13s real %8.1f k samples/s (%6.1f ms/step)  bare %8.1f k samples/s "
-                 "(%6.1f ms)  real/bare %.2f  [%d samples/step, %d threads, skip %s]", name,
+                 "(%6.1f ms)  real/bare %.2f  [%d samples/step, %d threads, skip %s, grids "
+                 "%s]", name,
                  r["real_samples_per_s"] / 1e3, r["real_s"] * 1e3,
                  r["bare_samples_per_s"] / 1e3, r["bare_s"] * 1e3,
                  r["real_samples_per_s"] / r["bare_samples_per_s"], r["samples"], args.threads,
-                 args.skip)
+                 args.skip, args.grids)
         if "profile" in r:
             log.info("%s", r["profile"])
 
