@@ -165,7 +165,8 @@ class _CPRankSum(torch.autograd.Function):
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
         *lines, lower, weights = ctx.saved_tensors
         tables = [channel_rows(line).numpy() for line in lines]
-        sums = scatter_copies(lower.shape[0], tables, lines[0].dtype, 8)  # [P, R_a, C] each
+        # [P, R_a, C] each; a point writes 2 rows of each of the 4 lines
+        sums = scatter_copies(lower.shape[0], tables, lines[0].dtype, corners=4 * 2)
         p = sums[0].shape[0]
         c, dtype = tables[0].shape[1], tables[0].dtype
         samples = np.empty((p, 4, c + PAD), dtype)

@@ -330,7 +330,8 @@ class _HexRankSum(torch.autograd.Function):
         factors, corners = ctx.saved_tensors, ctx.corners
         planes, lines = _tables(factors)
         n = corners.lo_p.shape[0]
-        sums = scatter_copies(n, [*planes, *lines], factors[0].dtype, 30)  # [P, rows, C]
+        # [P, rows, C] each; a point writes 4 rows of each plane and 2 of each line
+        sums = scatter_copies(n, [*planes, *lines], factors[0].dtype, corners=6 * 4 + 3 * 2)
         p, c, dtype = sums[0].shape[0], planes[0].shape[1], planes[0].dtype
         feature = np.arange(c, dtype=np.int64) // ctx.rank
         args = (planes, lines, *corners.args(), feature, grad.contiguous().numpy())
