@@ -39,9 +39,10 @@ backward of ``addmm`` scales the ``[N, in]`` input gradient by ``alpha`` in a pa
 its own, five per step in the 4×64 field (~10 % of its profiled time; measured 1.05× /
 1.07× faster at one / two threads, docs/results/history.md, "Session 30"). The linear layers are
 therefore applied through their parameters (:mod:`eventrecon.fields.linear`), not called
-as modules: hooks registered on them do not run. With grad mode off under bf16 autocast
-on a CPU (evaluation images) each hidden layer's ReLU is fused into oneDNN's linear,
-with the same values (:func:`~eventrecon.fields.linear.linear_relu`).
+as modules: hooks registered on them do not run. With grad mode off on a CPU
+(evaluation images, the occupancy grid's queries) each hidden layer's ReLU is fused into
+oneDNN's linear, in bf16 where the CPU has it natively (the same values) and in fp32 (the
+same to float32 rounding; :func:`~eventrecon.fields.linear.linear_relu`).
 
 The input features are read in a grouped column order, ``[x, t, sin(A), cos(A)]``
 (:meth:`NeRFField.features`), and the weight columns of the layers that take them are
