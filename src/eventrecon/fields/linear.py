@@ -20,8 +20,9 @@ cases run it:
   CPU, and ``tests/test_linear.py`` checks it wherever this path runs.
 - **fp32** activations, weight and bias outside autocast (a run in ``32-true``: the
   NeRF on a CPU without native bf16, ``eventrecon.precision``), on any CPU. On a 2-core
-  AVX2-only EPYC (Zen 3) the layers ran 1.23–1.35× faster at 16 384 rows and the 346×260
-  image 1.17× (docs/results/history.md, sessions 64–65). oneDNN blocks the sums over
+  AVX2-only EPYC (Zen 3), the only CPU it was timed on, the layers ran 1.23–1.35× faster
+  at 16 384 rows and the 346×260 image 1.17–1.23× (docs/results/history.md, sessions
+  64–65). oneDNN blocks the sums over
   the inputs differently from MKL's ``addmm``, so the values agree to float32 rounding,
   not to the bit: within ``n·u·(|h| |s·W|ᵀ + |b|)`` for ``n`` inputs and unit roundoff
   ``u = 2⁻²⁴``, the standard bound on a float32 dot product's error, which
