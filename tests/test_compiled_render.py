@@ -16,9 +16,9 @@ import pytest
 import torch
 from torch import Tensor, nn
 
-from eventrecon.compiled import numba_threads, parts
 from eventrecon.fields.base import Field
 from eventrecon.render import compiled_render, composite_rows
+from eventrecon.render.compiled import numba_threads, parts
 from eventrecon.render.samplers import pdf_bins, sample_pdf, stratified, uniform
 from eventrecon.render.volume import Renderer, composite
 

@@ -20,7 +20,6 @@ from eventrecon.fields.encoding import (
     encode_grouped,
     full_precision_products,
 )
-from eventrecon.fields.sincos import sin_cos
 from eventrecon.render.volume import Renderer
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf" / "model" / "nerf.yaml")
@@ -97,8 +96,7 @@ def test_a_window_of_ones_is_skipped_exactly_and_a_loaded_window_is_applied() ->
     enc.set_progress(10_000)
     assert enc._all_on                           # the skip is taken
     xb = x[:, None, :] * enc.freqs[:, None]
-    sin, cos = sin_cos(xb.reshape(9, -1))         # the encoding's own sine and cosine
-    feats = torch.cat([sin.view_as(xb), cos.view_as(xb)], dim=-1) * enc.window[:, None]
+    feats = torch.cat([torch.sin(xb), torch.cos(xb)], dim=-1) * enc.window[:, None]
     assert torch.equal(enc(x), torch.cat([x, feats.reshape(9, -1)], dim=-1))
     half = PositionalEncoding(3, 4, anneal_steps=400)
     half.set_progress(150)                       # window (1, 0.5, 0, 0)

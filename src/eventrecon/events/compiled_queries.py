@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.compiled import AVAILABLE, compiled
+from eventrecon.render.compiled import AVAILABLE, compiled
 
 __all__ = ["lookup", "serves", "window_all"]
 

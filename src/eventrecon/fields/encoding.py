@@ -11,10 +11,7 @@ For an input :math:`\\mathbf{x} \\in \\mathbb{R}^D` and ``L`` bands:
 Frequencies are ``2^k`` without a factor π, NeRF's code convention (the paper's formula
 writes ``2^k π``): the method's bands (2^0..2^13 for position, 2^0..2^6 for time) are
 those of the authors' code. A side benefit: ``2^k x`` is exact in floating point, so the
-only error is that of ``sin``/``cos`` themselves, even at ``x = ±1`` and beyond. Every
-layout below takes them from :func:`~eventrecon.fields.sincos.sin_cos` (on a CPU in
-float32 one compiled pass for both, within float32's epsilon; ``torch.sin`` and
-``torch.cos`` elsewhere), so the layouts agree with one another to the bit.
+only error is that of ``sin``/``cos`` themselves, even at ``x = ±1`` and beyond.
 
 Band annealing (Nerfies / BARF): with progress :math:`\\alpha = L \\cdot
 \\text{step} / \\text{anneal\\_steps}`, band ``k`` is weighted by
@@ -38,7 +35,6 @@ import torch
 from torch import Tensor, nn
 
 from eventrecon.errors import InputError
-from eventrecon.fields.sincos import sin_cos
 
 __all__ = ["PositionalEncoding", "band_window", "BandAnnealing", "grouped_layout",
            "encode_grouped", "full_precision_products", "ActiveColumns", "active_columns",
@@ -125,8 +121,7 @@ class PositionalEncoding(nn.Module):
         if self.n_bands == 0:
             return x
         xb = x[:, None, :] * self.freqs[:, None].to(x.dtype)          # [N, L, D]
-        sin, cos = sin_cos(xb.reshape(x.shape[0], -1))
-        feats = torch.cat([sin.view_as(xb), cos.view_as(xb)], dim=-1)  # [N, L, 2D]
+        feats = torch.cat([torch.sin(xb), torch.cos(xb)], dim=-1)      # [N, L, 2D]
         if not self._all_on:                     # ×1 is exact: skip the pass once all are on
             feats = feats * self.window[:, None].to(x.dtype)
         return torch.cat([x, feats.reshape(x.shape[0], 2 * self.n_bands * self.in_dim)], dim=-1)
@@ -217,7 +212,7 @@ def encode_grouped(x: Tensor, freqs: Tensor, window: Tensor | None = None,
     dtype = dtype or x.dtype
     if x.requires_grad and torch.is_grad_enabled():      # out= is not differentiable
         angles = _angles(x, freqs)
-        sin, cos = sin_cos(angles)
+        sin, cos = torch.sin(angles), torch.cos(angles)
         if window is not None:
             sin, cos = sin * window, cos * window
         return torch.cat([x, sin, cos], dim=-1).to(dtype)
@@ -231,12 +226,12 @@ def encode_grouped(x: Tensor, freqs: Tensor, window: Tensor | None = None,
     for a, b in runs:
         angles = _angles(x, freqs if (a, b) == (0, n) else freqs[:, a:b])
         ones = weights is None or all(v == 1.0 for v in weights[a:b])
-        cols = out[:, d + a:d + b], out[:, d + n + a:d + n + b]
-        if ones:
-            sin_cos(angles, *cols)
-        else:
-            for value, col in zip(sin_cos(angles), cols):
-                torch.mul(value, window[a:b], out=col)
+        for fn, first in ((torch.sin, d), (torch.cos, d + n)):
+            cols = out[:, first + a:first + b]
+            if ones:
+                fn(angles, out=cols)
+            else:
+                torch.mul(fn(angles), window[a:b], out=cols)
     return out
 
 
@@ -310,8 +305,7 @@ def encode_active(x: Tensor, active: ActiveColumns, dtype: torch.dtype | None = 
     layout's up to rounding."""
     angles = torch.index_select(x, 1, active.source) * active.freq.to(x.dtype)
     window = active.window.to(x.dtype)
-    sin, cos = sin_cos(angles)
-    feats = torch.cat([x, sin * window, cos * window], dim=-1)
+    feats = torch.cat([x, torch.sin(angles) * window, torch.cos(angles) * window], dim=-1)
     return feats.to(dtype or x.dtype)
 
 

@@ -42,9 +42,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.compiled import AVAILABLE
-from eventrecon.compiled import compiled as compiled_loop
 from eventrecon.errors import InputError
+from eventrecon.render.compiled import AVAILABLE
+from eventrecon.render.compiled import compiled as compiled_loop
 
 __all__ = ["Cylinder", "INSIDE_TOL", "PARALLEL_EPS", "NO_CLIPPING"]
 

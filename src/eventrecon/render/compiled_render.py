@@ -43,8 +43,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from eventrecon.compiled import AVAILABLE, compiled, compiled_parallel, parts, prange
 from eventrecon.render.clipping import INSIDE_TOL
+from eventrecon.render.compiled import AVAILABLE, compiled, compiled_parallel, parts, prange
 from eventrecon.render.composite_rows import RAYS_PER_RANGE, composite_rows, merge
 from eventrecon.render.queries import query_field
 from eventrecon.render.samplers import stratified, uniform

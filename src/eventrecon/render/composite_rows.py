@@ -47,7 +47,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.compiled import compiled, compiled_parallel, parts, prange
+from eventrecon.render.compiled import compiled, compiled_parallel, parts, prange
 from eventrecon.render.samplers import TAU_MAX
 
 __all__ = ["CompositeRows", "composite_rows", "merge", "RAYS_PER_RANGE"]

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.compiled import AVAILABLE, compiled, compiled_parallel, parts, prange
+from eventrecon.render.compiled import AVAILABLE, compiled, compiled_parallel, parts, prange
 
 __all__ = ["network", "sort_rows"]
 

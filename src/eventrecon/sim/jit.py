@@ -27,7 +27,7 @@ import itertools
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from eventrecon.compiled import (
+from eventrecon.render.compiled import (
     AVAILABLE,
     GRAIN,
     OPTIONS,
@@ -116,6 +116,6 @@ def smaller(a, b):
     return b if b < a else a
 
 
-#: :func:`~eventrecon.compiled.compiled_parallel`: ``parallel=True``, its ``prange``
+#: :func:`~eventrecon.render.compiled.compiled_parallel`: ``parallel=True``, its ``prange``
 #: loop on numba's threads (the loops it splits, :func:`parts`).
 njit_parallel = compiled_parallel

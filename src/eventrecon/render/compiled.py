@@ -1,14 +1,13 @@
 """numba for the compiled loops outside the simulator: the decorators, and how many of
 numba's threads a loop may take (:func:`parts`, which the simulator's helpers use too).
 
-A top-level module, so that every subpackage may use it: the renderer's loops
-(:mod:`eventrecon.render`), the fields' encoding (:mod:`eventrecon.fields.sincos`), the
-event queries. The simulator's :mod:`eventrecon.sim.jit` builds on it (its decorators add
-inlining and a stale-cache check over its own files); this module may not import that
-one (``tests/test_structure.py`` forbids import cycles). That stale-cache check does not
-cover the modules that use this one: numba keys a function's cache on its own file
-alone, so each of them keeps its compiled loops self-contained (no compiled helper from
-another module) and passes values that may change as arguments, not globals.
+The simulator's :mod:`eventrecon.sim.jit` builds on this module (its decorators add
+inlining and a stale-cache check over its own files); this package may not import that
+one: the simulator imports the renderer's cameras, and subpackages must not import one
+another in a cycle (``tests/test_structure.py``). That stale-cache check does not cover
+these files: numba keys a function's cache on its own file alone, so each module here
+keeps its compiled loops self-contained (no compiled helper from another module) and
+passes values that may change as arguments, not globals.
 """
 
 from __future__ import annotations
