@@ -129,7 +129,8 @@ def test_training_and_mixed_dtypes_keep_addmm(fused_calls) -> None:
     pytest.param(torch.bfloat16, marks=bf16_fused_only)])
 def test_a_single_output_column_keeps_addmm(dtype, fused_calls) -> None:
     """The density head's shape (one output) stays ``addmm`` (faster there); two outputs
-    take oneDNN's linear, in bf16 to ``addmm``'s bit."""
+    take oneDNN's linear, in bf16 to ``addmm``'s bit, in fp32 within float32's rounding
+    bound of the exact product."""
     h = torch.randn(300, 64).to(dtype)
     with torch.no_grad():
         for out in (1, 2):
@@ -137,6 +138,9 @@ def test_a_single_output_column_keeps_addmm(dtype, fused_calls) -> None:
             got, want = linear(w, b, h), torch.addmm(b, h, w.t())
             if out == 1 or dtype == torch.bfloat16:
                 assert torch.equal(got, want)
+            else:
+                exact = torch.addmm(b.double(), h.double(), w.double().t())
+                assert ((got.double() - exact).abs() <= rounding_bound(w, b, h)).all()
     assert fused_calls == [(300, 64)]
 
 
