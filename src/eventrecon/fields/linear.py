@@ -22,11 +22,11 @@ cases run it:
   NeRF on a CPU without native bf16, ``eventrecon.precision``), on any CPU. On a 2-core
   AVX2-only EPYC (Zen 3), the only CPU it was timed on, the layers ran 1.23–1.35× faster
   at 16 384 rows and the 346×260 image 1.17–1.23× (docs/results/history.md, sessions
-  64–65). oneDNN blocks the sums over
-  the inputs differently from MKL's ``addmm``, so the values agree to float32 rounding,
-  not to the bit: within ``n·u·(|h| |s·W|ᵀ + |b|)`` for ``n`` inputs and unit roundoff
-  ``u = 2⁻²⁴``, the standard bound on a float32 dot product's error, which
-  ``tests/test_linear.py`` asserts (a 346×260 image's colours moved by ≤ 6·10⁻⁸).
+  64–65). oneDNN blocks the sums over the inputs differently from MKL's ``addmm``, so
+  the values agree to float32 rounding, not to the bit: within ``n·u·(|h| |s·W|ᵀ + |b|)``
+  for ``n`` inputs and unit roundoff ``u = 2⁻²⁴``, the standard bound on a float32 dot
+  product's error, which ``tests/test_linear.py`` asserts (a 346×260 image's colours
+  moved by ≤ 6·10⁻⁸).
 
 With grad mode on (training steps) it is ``addmm`` and ``relu``: a fused forward with
 autograd's backward written out gave the same gradients but was 4–6 % slower per field
