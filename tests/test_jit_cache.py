@@ -1,5 +1,6 @@
 """numba's cache is dropped when any compiled module of the simulator changes
-(:func:`eventrecon.sim.jit.drop_stale_cache`), not only the file of the cached function."""
+(:func:`eventrecon.sim.jit.drop_stale_cache`), not only the file of the cached function,
+and when the decorators that decide how kernels and helpers are compiled change."""
 
 from pathlib import Path
 
@@ -57,4 +58,20 @@ def test_another_package_with_its_own_sources(tmp_path):
     assert drop_stale_cache(tmp_path, sources) is False
     (tmp_path / "shared.py").write_text("# an edited helper\n")
     assert drop_stale_cache(tmp_path, sources) is True
+    assert _cache_files(tmp_path) == []
+
+
+def test_an_edit_of_the_decorators_drops_the_cache(tmp_path):
+    """How a helper is compiled (``jit.njit``: inlined by LLVM or copied as IR) is part of
+    every kernel's machine code, so an edit of the decorators' file drops the caches too."""
+    sources = ("kernel.py",)
+    (tmp_path / "kernel.py").write_text("# kernel\n")
+    decorators = tmp_path / "jit.py"
+    decorators.write_text("# inline by LLVM\n")
+    (tmp_path / "__pycache__").mkdir()
+    assert drop_stale_cache(tmp_path, sources, decorators) is False   # stamped
+    (tmp_path / "__pycache__" / "kernel._fwd-10.py311.nbi").write_bytes(b"x")
+    assert drop_stale_cache(tmp_path, sources, decorators) is False   # kept
+    decorators.write_text("# inline as numba IR\n")
+    assert drop_stale_cache(tmp_path, sources, decorators) is True
     assert _cache_files(tmp_path) == []

@@ -52,15 +52,18 @@ SOURCES = ("jit.py", "compiled_paths.py", "compiled_core.py", "merge.py", "cross
 
 
 def drop_stale_cache(package: Path = Path(__file__).parent,
-                     sources: Sequence[str] = SOURCES) -> bool:
+                     sources: Sequence[str] = SOURCES,
+                     decorators: Path = Path(__file__)) -> bool:
     """Delete numba's cache files in ``package/__pycache__`` unless they were made from
     the ``sources`` (file names in ``package``; this package's :data:`SOURCES` by default)
-    as they are now (a SHA-1 of them all, kept beside the cache). Returns whether anything
-    was dropped. A read-only package is left as it is. Another package whose kernels
-    inline one another's helpers calls it on import with its own files."""
+    and the ``decorators`` (this file: how every kernel and helper is compiled) as they
+    are now (a SHA-1 of them all, kept beside the cache). Returns whether anything was
+    dropped. A read-only package is left as it is. Another package whose kernels inline
+    one another's helpers calls it on import with its own files."""
     cache = package / "__pycache__"
-    digest = hashlib.sha1(b"".join((package / name).read_bytes() for name in sources
-                                   if (package / name).exists())).hexdigest()
+    files = [package / name for name in sources] + [decorators]
+    digest = hashlib.sha1(b"".join(f.read_bytes() for f in files
+                                   if f.exists())).hexdigest()
     stamp = cache / "numba_sources.sha1"
     try:
         if stamp.read_text() == digest:
@@ -85,10 +88,21 @@ if AVAILABLE:
 def njit(fn: Callable, inline: bool = False, nrt: bool = True) -> Callable:
     """``fn`` compiled (see the module docstring); ``inline``: at its call sites, for
     small per-element helpers whose call would cost more than their work; ``nrt=False``:
-    without reference counting (:func:`njit_borrowing`)."""
+    without reference counting (:func:`njit_borrowing`).
+
+    An inline helper is compiled once, without reference counting (it may not create
+    arrays), and marked ``alwaysinline`` for LLVM (numba's ``forceinline``), which copies
+    its optimised code into each caller. numba's own ``inline="always"`` instead copies
+    the helper's IR into every call site and types it again there. Both run the same
+    operations in the same order, so they give the same bits. Measured in one process
+    with both builds alternated (session 66, 2 threads), HexPlane's fused rank sum ran
+    0.90× as long with LLVM's inlining, TensoRF-CP's 0.97–0.99× and NGP's hash
+    encoding 0.99×; the first compile took about as long."""
     if numba is None:                            # pragma: no cover
         return fn
-    return numba.njit(**OPTIONS, _nrt=nrt, inline="always" if inline else "never")(fn)
+    if inline:
+        return numba.njit(**OPTIONS, _nrt=False, forceinline=True)(fn)
+    return numba.njit(**OPTIONS, _nrt=nrt)(fn)
 
 
 def njit_inline(fn: Callable) -> Callable:
