@@ -23,7 +23,6 @@
     python -m benchmarks sim [--repeats 3] [--quick] [--only grating|core|scene]
                              [--v2e DIR] [--baseline OLD_IDEAL_PY]
                              [--max-log-step 0.25] [--max-step 2e-3]   (the grating's core)
-                             [--engines compiled numpy]
 
 Medians over repeats, torch and numpy on one thread (run with ``OMP_NUM_THREADS=1``).
 """
@@ -44,7 +43,7 @@ from pathlib import Path
 import numpy as np
 from omegaconf import OmegaConf
 
-from eventrecon.sim import event_sim, ideal, merge
+from eventrecon.sim import event_sim, ideal
 from eventrecon.sim.event_sim import simulate_events
 from eventrecon.sim.ideal import crossings, frame_events
 from eventrecon.sim.pipeline import ensure_dataset, torch_threads
@@ -207,29 +206,19 @@ class _Timed:
 
 
 def _core(mod, signal, P: int, theta: float, max_log_step: float = 0.25,
-          max_step: float = 2e-3, engine: str = "auto"):
+          max_step: float = 2e-3):
     """Run ``mod.run_core`` on ``signal``: ``(result, seconds, seconds inside the signal)``."""
     setup = mod.SignalSetup(np.full(P, theta), np.full(P, theta), np.full((P, 3), 1 / 3))
-    kw = {} if engine == "auto" else {"engine": engine}
     timed = _Timed(signal)
     t0 = time.perf_counter()
     res = mod.run_core(timed, np.arange(P), setup,
-                       mod.CoreSettings(theta, max_log_step, max_step, 1e-6, **kw))
+                       mod.CoreSettings(theta, max_log_step, max_step, 1e-6))
     return res, time.perf_counter() - t0, timed.sec
 
 
-def _warm_time_order() -> None:
-    """Compile (or load) the compiled time order for the core's event columns, which only
-    runs above ``4·CHUNK`` events: the small warm-up grating does not reach it."""
-    n = 4 * merge.CHUNK + 1
-    rng = np.random.default_rng(0)
-    merge.merge_by_time([(rng.integers(0, 9, n), rng.random(n), np.ones(n, np.int8))])
-
-
 def bench_grating(width: int, height: int, theta: float, repeats: int, Emulator=None,
-                  baseline=None, max_log_step: float = 0.25, max_step: float = 2e-3,
-                  engines: tuple[str, ...] = ("compiled", "numpy")) -> None:
-    """Missed / extra / timestamp error and events/s of the core's ``engines``
+                  baseline=None, max_log_step: float = 0.25, max_step: float = 2e-3) -> None:
+    """Missed / extra / timestamp error and events/s of the event core
     (``max_log_step``, ``max_step``: the spec defaults unless given; the time inside the
     signal reported apart), frame-fed emission and (optionally) v2e and a baseline core on
     the grating; logs one line each."""
@@ -238,18 +227,15 @@ def bench_grating(width: int, height: int, theta: float, repeats: int, Emulator=
     truth = gr.truth(theta)
     tk = np.linspace(0.0, 1.0, 501)
     frames = np.stack([gr(np.arange(gr.P), np.full(gr.P, x)) for x in tk])
-    names = [f"core:{e}" for e in engines]
+    names = ["core"]
     sec: dict = {k: [] for k in (*names, "frames", "v2e", "base")}
     sig: dict = {k: [] for k in names}
     out: dict = {}
-    for e in engines:                              # compile (or load) numba's loops first
-        _core(ideal, Grating(8, 6), 48, theta, engine=e, **core_settings)
-    _warm_time_order()
+    _core(ideal, Grating(8, 6), 48, theta, **core_settings)         # warm-up
     for _ in range(repeats):                       # alternated, medians below
-        for e, name in zip(engines, names):
-            out[name], dt, ds = _core(ideal, gr, gr.P, theta, engine=e, **core_settings)
-            sec[name].append(dt)
-            sig[name].append(ds)
+        out["core"], dt, ds = _core(ideal, gr, gr.P, theta, **core_settings)
+        sec["core"].append(dt)
+        sig["core"].append(ds)
         if baseline is not None:
             base, dt, _ = _core(baseline, gr, gr.P, theta, **core_settings)
             sec["base"].append(dt)
@@ -284,14 +270,6 @@ def bench_grating(width: int, height: int, theta: float, repeats: int, Emulator=
                  "(%.1f ns/sample)", name, core.n_samples / max(core.t.size, 1),
                  core.extra["turn_samples"], core.iterations, ds,
                  1e9 * ds / core.n_samples, rest, 1e9 * rest / core.n_samples)
-    if len(names) == 2:
-        same = all(np.array_equal(getattr(out[names[0]], f), getattr(out[names[1]], f))
-                   for f in "gtp")
-        ratio = statistics.median(b / a for a, b in zip(sec[names[0]], sec[names[1]]))
-        own = statistics.median((b - bs) / (a - as_) for a, as_, b, bs in
-                                zip(sec[names[0]], sig[names[0]], sec[names[1]], sig[names[1]]))
-        log.info("  %s / %s: identical events %s; speed-up %.2f in all, %.2f of the core's "
-                 "own work (alternated)", names[0], names[1], same, ratio, own)
     if Emulator is not None:
         ratio = statistics.median(v / f for v, f in zip(sec["v2e"], sec["frames"]))
         log.info("  frame-fed / v2e events/s: %.2f (same frames, alternated)", ratio)
@@ -373,9 +351,6 @@ def main(argv: list[str] | None = None) -> None:
                     help="the core's step bound in L, in units of θ, on the grating")
     ap.add_argument("--max-step", type=float, default=2e-3,
                     help="the core's longest step on the grating (normalised time)")
-    ap.add_argument("--engines", nargs="+", default=["compiled", "numpy"],
-                    choices=["auto", "compiled", "numpy"],
-                    help="the core's engines timed on the grating (alternated)")
     args = ap.parse_args(argv if argv is not None else [])
     sizes = [(96, 72)] + ([] if args.quick else [(346, 260)])
     with torch_threads(1):
@@ -384,7 +359,7 @@ def main(argv: list[str] | None = None) -> None:
             w, h = sizes[-1]
             for theta in (0.5, 0.2):
                 bench_grating(w, h, theta, args.repeats, Emulator, baseline,
-                              args.max_log_step, args.max_step, tuple(args.engines))
+                              args.max_log_step, args.max_step)
         for w, h in sizes if args.only in (None, "core") else []:
             m = _median([bench_crossings(w, h) for _ in range(args.repeats)])
             log.info("crossings %dx%d: %.1f M events/s (%d events from %d samples, %.3f s)",

@@ -131,45 +131,6 @@ def test_all_pixel_window_equals_the_lookup_on_every_pixel_to_the_bit(decay: flo
         assert torch.count_nonzero(e[quiet]) == 0
 
 
-@pytest.mark.parametrize("decay", [0.8, 1.0])
-def test_compiled_queries_equal_the_tensor_forms_to_the_bit(decay: float, monkeypatch) -> None:
-    """The compiled loops (``eventrecon.events.compiled_queries``) against the tensor
-    forms on many pixels with shared timestamps: ``value``, ``window`` (both orders, one
-    query time per pixel) and ``window_all`` the same bits; the loops ran."""
-    import eventrecon.events.compiled_queries as cq
-
-    rng = np.random.default_rng(4)
-    streams = random_streams(rng, 3, 900)
-    ev = DecayedEvents.from_streams(streams, H, W, decay)
-    calls = {"_lookup": 0, "_window": 0}
-    for name in calls:
-        kernel = getattr(cq, name)
-
-        def spy(*a, kernel=kernel, name=name):
-            calls[name] += 1
-            return kernel(*a)
-
-        monkeypatch.setattr(cq, name, spy)
-    pix = torch.from_numpy(rng.integers(0, ev.n_pixels, 5000))
-    t = torch.from_numpy(np.concatenate([rng.uniform(-10, 1010, 2500),
-                                         rng.integers(0, 51, 2500) * 20.0]))
-    windows = [(100.0, 300.0), (300.0, 100.0), (0.0, 1000.0), (200.0, 200.0), (-5.0, 0.0),
-               *rng.uniform(-10, 1010, (20, 2)).tolist()]
-
-    def run() -> list[torch.Tensor]:
-        out = [ev.value(pix, t), ev.window(pix, t, t.flip(0)), ev.window(pix, 400.0, t)]
-        return out + [ev.window_all(t0, t1) for t0, t1 in windows]
-
-    fast = run()
-    assert calls == {"_lookup": 3, "_window": len(windows)}
-    monkeypatch.setattr(cq, "serves", lambda keys: False)
-    slow = run()
-    assert calls == {"_lookup": 3, "_window": len(windows)}
-    for a, b in zip(fast, slow):
-        assert a.dtype == b.dtype == torch.float64 and torch.equal(a, b)
-    assert any(bool(x.ne(0).any()) for x in fast[3:])
-
-
 def test_zero_events_everywhere_and_in_one_view() -> None:
     ev = DecayedEvents.from_streams([EventStream.empty(), EventStream.empty()], H, W, 0.93)
     assert ev.n_events == 0

@@ -130,26 +130,3 @@ def test_skipped_intervals_are_truly_constant():
         assert quiet.sum() > 0
         assert torch.equal(a[quiet], b[quiet])
     assert busy.any(1).all()
-
-
-def test_inlined_larger_and_smaller_follow_the_builtins_rule() -> None:
-    """``jit.larger`` / ``smaller`` replace ``max`` / ``min`` in the compiled core: the same
-    value, bit for bit, for every order of NaN, ±0 and mixed int/float arguments."""
-    from eventrecon.sim.jit import AVAILABLE, larger, njit, smaller
-
-    if not AVAILABLE:
-        pytest.skip("numba is not installed")
-
-    @njit
-    def both(a, b):
-        return larger(a, b), smaller(a, b)
-
-    values = [np.nan, -0.0, 0.0, 1.5, -2.0, np.inf]
-    for a in values:
-        for b in values:
-            got = both(a, b)
-            want = (max(a, b), min(a, b))
-            assert [np.float64(x).tobytes() for x in got] == [
-                np.float64(x).tobytes() for x in want], (a, b)
-    assert both(3, 7) == (7, 3) and both(np.int64(-1), 0) == (0, -1)
-    assert both(2, 2.5) == (2.5, 2.0)

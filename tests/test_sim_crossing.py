@@ -1,14 +1,12 @@
 """The event core's crossing times (:mod:`eventrecon.sim.crossing`): exact on polynomials
-of the interpolant's degree, the first root on a leg, and the compiled scalar form equal
-to the numpy one bit for bit."""
+of the interpolant's degree, the first root on a leg."""
 
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from test_sim_turns import SmallGrating, _setup
 
-from eventrecon.sim import compiled_core, crossing
+from eventrecon.sim import crossing
 from eventrecon.sim.crossing import cross_times, first_root, newton_form, poly
 from eventrecon.sim.ideal import CoreSettings, run_core
 
@@ -96,8 +94,8 @@ def _random_paths(seed: int, n: int = 3000, C: int = 9):
 
 
 def test_the_time_is_the_first_root_on_the_leg(monkeypatch):
-    # the crossings of the core's own paths on the small grating (numpy engine, the
-    # default settings), against a dense scan for the first sign change of ℓ(s) − u
+    # the crossings of the core's own paths on the small grating (the default settings),
+    # against a dense scan for the first sign change of ℓ(s) − u
     seen = []
 
     def recorded(u, C, Z):
@@ -107,7 +105,7 @@ def test_the_time_is_the_first_root_on_the_leg(monkeypatch):
     monkeypatch.setattr(crossing, "first_root", recorded)
     gr = SmallGrating()
     P = gr.W * gr.H
-    run_core(gr, np.arange(P), _setup(P, 0.5), CoreSettings(0.5, engine="numpy"))
+    run_core(gr, np.arange(P), _setup(P, 0.5), CoreSettings(0.5))
     u, s = (np.concatenate([x[k] for x in seen]) for k in (0, 3))
     C, Z = (np.concatenate([x[k] for x in seen], 1) for k in (1, 2))
     grid = np.linspace(0.0, 1.0, 4097)[:, None]
@@ -117,23 +115,3 @@ def test_the_time_is_the_first_root_on_the_leg(monkeypatch):
     resid = np.abs(poly(s, C, Z)[0] - u)                      # a root (Newton's error
     assert np.median(resid) <= 1e-8 and resid.max() <= 1e-4  # after a short step) ...
     assert np.all(np.abs(s - first) <= 1 / 4096 + 1e-4)       # ... and the first one
-
-
-@pytest.mark.skipif(not compiled_core.AVAILABLE, reason="numba is not installed")
-@pytest.mark.parametrize("seed", [3, 4])
-def test_the_compiled_crossing_time_equals_the_numpy_one_bit_for_bit(seed):
-    from eventrecon.sim.compiled_paths import cross_time
-    Pt, PL, length, c, i, level = _random_paths(seed)
-    t = cross_times(Pt, PL, c, i, level, length)
-    Tc, Lc = np.ascontiguousarray(Pt.T), np.ascontiguousarray(PL.T)
-    ts = np.array([cross_time(Tc[k], Lc[k], c[k], length[k], level[k]) for k in i])
-    np.testing.assert_array_equal(ts, t)
-    # the rare paths are among them: roots far from the quadratic start (two more steps
-    # or the scan) and legs whose polynomial is not monotone (the scan)
-    x1, h, y1, D, C, Z = newton_form(Pt, PL, c, i, length)
-    with np.errstate(all="ignore"):
-        u, b = (level - y1) / D, 1.0 - C[0]
-        s0 = 2.0 * u / (b + np.sqrt(b * b + 4.0 * C[0] * u))
-        slope = poly(np.linspace(0.0, 1.0, 257)[:, None], C, Z)[1]
-        assert np.sum(np.abs((t - x1) / h - s0) >= 0.1) > 50
-    assert np.sum(np.any(slope <= 0, axis=0)) > 50

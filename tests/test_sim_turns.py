@@ -3,12 +3,9 @@ turns, sub-µs timestamps on a sliding grating, and the time merge equal to a so
 
 from __future__ import annotations
 
-import gc
-
 import numpy as np
 import pytest
 
-from eventrecon.sim import compiled_core
 from eventrecon.sim.ideal import (
     CoreSettings,
     SignalSetup,
@@ -17,9 +14,10 @@ from eventrecon.sim.ideal import (
     frame_events,
     run_core,
 )
-from eventrecon.sim.merge import CHUNK, merge_by_time, time_order
+from eventrecon.sim.merge import merge_by_time, time_order
 
 T_S = 0.5                                     # the grating's duration in seconds
+LARGE = 5 * 2 ** 15                           # events in the large time-order cases
 
 
 def _setup(n: int, theta: float) -> SignalSetup:
@@ -115,8 +113,8 @@ def test_core_is_deterministic():
         np.testing.assert_array_equal(x, y)
 
 
-@pytest.mark.parametrize("n,decimals", [(0, 4), (1, 4), (7, 4), (5000, 4), (5 * CHUNK, 4),
-                                        (5 * CHUNK, 2)])
+@pytest.mark.parametrize("n,decimals", [(0, 4), (1, 4), (7, 4), (5000, 4), (LARGE, 4),
+                                        (LARGE, 2)])
 def test_time_order_equals_lexsort_with_ties(n, decimals):
     rng = np.random.default_rng(n)
     t = np.round(rng.random(n), decimals)       # many equal stamps (2: ~1600 per stamp)
@@ -128,24 +126,24 @@ def test_time_order_equals_lexsort_with_ties(n, decimals):
     G, T, I = merge_by_time([(g[:half], t[:half], np.arange(half)),
                              (g[half:], t[half:], np.arange(half, n))])
     np.testing.assert_array_equal(I, expect)
-    p = rng.choice(np.array([-1, 1], np.int8), n)  # one int8 column (carried along) and
+    p = rng.choice(np.array([-1, 1], np.int8), n)  # one int8 column, then two
     G, T, P = merge_by_time([(g[:half], t[:half], p[:half]), (g[half:], t[half:], p[half:])])
-    for got, want in ((G, g), (T, t), (P, p)):    # two columns (gathered by the order)
+    for got, want in ((G, g), (T, t), (P, p)):
         np.testing.assert_array_equal(got, want[expect])
         assert got.dtype == want.dtype
     _, _, P2, I2 = merge_by_time([(g[:half], t[:half], p[:half], np.arange(half)),
                                   (g[half:], t[half:], p[half:], np.arange(half, n))])
     np.testing.assert_array_equal(P2, p[expect])
     np.testing.assert_array_equal(I2, expect)
-    for col in (rng.integers(0, 2**64 - 1, n, dtype=np.uint64),   # carried exactly
-                rng.random(n).astype(np.float16)):                 # gathered instead
+    for col in (rng.integers(0, 2**64 - 1, n, dtype=np.uint64),   # any dtype, exactly
+                rng.random(n).astype(np.float16)):
         *_, Q = merge_by_time([(g[:half], t[:half], col[:half]), (g[half:], t[half:], col[half:])])
         np.testing.assert_array_equal(Q, col[expect])
         assert Q.dtype == col.dtype
 
 
 def test_merge_by_time_refuses_columns_of_unequal_length():
-    n = 5 * CHUNK
+    n = LARGE
     g, t, p = np.zeros(n, np.int64), np.linspace(0, 1, n), np.ones(n, np.int8)
     for bad in (p[:0], p[:-1]):
         with pytest.raises(ValueError, match="part 0 has columns of lengths"):
@@ -172,115 +170,11 @@ def test_frame_events_equal_crossings_then_a_global_sort():
     np.testing.assert_array_equal(p, Pp[o])
 
 
-def _jumps(g, t):
-    """Steps of ``0.3 … 25`` in L four times (dozens of crossings on one leg) over a
-    slow sine: bisection down to ``min_step``, forced samples, turns between jumps."""
-    a = 0.3 + 2.5 * (g % 11)
-    return a * np.floor(4 * t) + 0.4 * np.sin(9 * t + g)
-
-
-def _graze(g, t):
-    """Peaks a hair above the level 0.5 (see the grazed-level test): turn refinement
-    that gains a crossing and re-emits the path."""
-    tp = 0.5 + 3e-4 * (g % 50)
-    return 0.501 * np.exp(-(((t - tp) / 0.05) ** 2))
-
-
-@pytest.mark.parametrize("case", ["grating 0.5", "grating 0.2", "jumps", "graze", "on≠off"])
-def test_compiled_engine_gives_the_numpy_engines_events_bit_for_bit(case, monkeypatch):
-    pytest.importorskip("numba")
-    gr = SmallGrating()
-    P = gr.W * gr.H
-    sig, setup, s = gr, _setup(P, 0.5), CoreSettings(0.5, 0.25, 2e-3, 1e-6)
-    if case == "grating 0.2":
-        setup, s = _setup(P, 0.2), CoreSettings(0.2, 0.25, 2e-3, 1e-6)
-    elif case == "jumps":
-        sig, s = _jumps, CoreSettings(0.5, 0.25, 1e-2, 1e-7)
-    elif case == "graze":
-        sig, s = _graze, CoreSettings(0.5, 0.25, 0.02, 1e-7)
-    elif case == "on≠off":
-        rng = np.random.default_rng(3)
-        setup = SignalSetup(rng.uniform(0.2, 0.6, P), rng.uniform(0.2, 0.6, P),
-                            np.full((P, 3), 1 / 3))
-    s.engine = "numpy"
-    ref = run_core(sig, np.arange(P), setup, s)
-    s.engine = "compiled"
-    # finished pixels dropped lazily, kept to the end or dropped at once (numpy's way);
-    # the signal called in blocks of 97, as one call (this grating's iterations hold fewer
-    # samples than the default block) or in blocks of 1000
-    for drop, batch in ((compiled_core.DROP, 97), (0.0, compiled_core.SIGNAL_BATCH),
-                        (1.0, 1000)):
-        monkeypatch.setattr(compiled_core, "DROP", drop)
-        monkeypatch.setattr(compiled_core, "SIGNAL_BATCH", batch)
-        res = run_core(sig, np.arange(P), setup, s)
-        for f in "gtp":                               # same events, same order, same bits
-            np.testing.assert_array_equal(getattr(res, f), getattr(ref, f))
-        assert (res.iterations, res.n_forced, res.extra) == (ref.iterations, ref.n_forced,
-                                                              ref.extra)
-    if case != "graze":                               # more than the first event chunk
-        assert ref.t.size > 4 * P + 1024
-    if case == "jumps":
-        assert res.n_forced > 0 and np.bincount(res.g).max() > 100
-    if case == "graze":                               # each peak found by refinement
-        assert res.t.size == P and res.extra["turn_samples"] > 0
-
-
-def test_an_unknown_or_unfit_engine_is_one_clear_error():
-    sig = SmallGrating()
-    with pytest.raises(ValueError, match="CoreSettings.engine.*'auto', 'numpy' or 'compiled'"
-                                         ".*'numba'"):
-        run_core(sig, np.arange(4), _setup(4, 0.5), CoreSettings(engine="numba"))
-    lowpass = _setup(4, 0.5)
-    lowpass.lowpass = lambda ya, ua, ub, dt: ub            # noqa: E731
-    with pytest.raises(ValueError, match="engine='compiled' needs .* no low-pass filter"):
-        run_core(sig, np.arange(4), lowpass, CoreSettings(engine="compiled"))
-
-
-@pytest.mark.parametrize("engine", ["numpy", "compiled"])
-def test_a_non_finite_signal_is_one_clear_error(engine):
-    pytest.importorskip("numba")
+def test_a_non_finite_signal_is_one_clear_error():
     sig = lambda g, t: np.where((g == 3) & (t > 0.5), np.nan, np.sin(9 * t))   # noqa: E731
     with pytest.raises(ValueError, match=r"non-finite value.*pixel 3, t = 0\.5.*expected "
                                          r"finite"):
-        run_core(sig, np.arange(5), _setup(5, 0.5), CoreSettings(engine=engine))
-
-
-def test_the_signal_called_in_blocks_gives_one_calls_values_and_dtype(monkeypatch):
-    # float64 and float32 signals, 1000 samples in blocks of 64 (the last one short)
-    monkeypatch.setattr(compiled_core, "SIGNAL_BATCH", 64)
-    g, t = np.arange(1000) % 37, np.linspace(0.0, 1.0, 1000)
-    for dtype in (np.float64, np.float32):
-        sig = lambda g, t, d=dtype: np.log(1.5 + np.sin(40 * t + g)).astype(d)  # noqa: E731
-        out = compiled_core._in_batches(sig, g, t)
-        assert out.dtype == dtype
-        np.testing.assert_array_equal(out, sig(g, t))
-
-
-def test_the_blocks_go_to_the_given_buffer_only_when_it_has_the_signals_dtype(monkeypatch):
-    monkeypatch.setattr(compiled_core, "SIGNAL_BATCH", 64)
-    g, t = np.arange(1000) % 37, np.linspace(0.0, 1.0, 1000)
-    buf = np.full(1200, np.nan)
-    out = compiled_core._in_batches(lambda g, t: np.sin(40 * t + g), g, t, buf)
-    assert np.shares_memory(out, buf) and out.size == 1000
-    np.testing.assert_array_equal(out, np.sin(40 * t + g))
-    f32 = compiled_core._in_batches(lambda g, t: np.sin(40 * t + g).astype(np.float32),
-                                    g, t, buf)
-    assert f32.dtype == np.float32 and not np.shares_memory(f32, buf)
-
-
-def test_plan_fills_the_run_long_buffers_with_each_pixels_block():
-    pytest.importorskip("numba")
-    # pixel 5: equal steps of 0.1, a block of 3 (< M: odd); pixel 7 after an easy block:
-    # steps min(2^k·0.004, 0.005) from 0.99, the third ends at t = 1
-    bufs = compiled_core._PlanBuffers(P=3, M=4)
-    G, T, start, n_valid, odd = bufs.plan(
-        np.array([5, 7]), np.array([0.0, 0.99]), np.array([0.1, 0.004]),
-        np.array([False, True]), np.array([3, 4]), 0.005)
-    np.testing.assert_array_equal(G, [5, 5, 5, 7, 7, 7])
-    np.testing.assert_allclose(T, [0.1, 0.2, 0.3, 0.994, 0.999, 1.0], rtol=0, atol=1e-15)
-    assert T[-1] == 1.0 and np.shares_memory(T, bufs.T) and np.shares_memory(G, bufs.G)
-    assert start.tolist() == [0, 3, 6] and n_valid.tolist() == [3, 3]
-    assert odd.tolist() == [True, True]
+        run_core(sig, np.arange(5), _setup(5, 0.5), CoreSettings())
 
 
 def test_a_finite_signal_whose_sum_overflows_is_not_mistaken_for_a_non_finite_one():
@@ -295,45 +189,15 @@ def test_a_finite_signal_whose_sum_overflows_is_not_mistaken_for_a_non_finite_on
         _finite(lambda g, t: np.array([0.0, np.inf, 1.0]))(np.arange(3), np.zeros(3))
 
 
-@pytest.mark.parametrize("engine", ["numpy", "compiled"])
-def test_the_core_runs_without_the_cycle_collector_and_restores_it(engine):
-    # gc_paused: off while the core runs (the signal sees it off), back on after, also when
-    # the signal raises; a collector the caller disabled stays disabled
-    pytest.importorskip("numba")
-    seen = []
-
-    def sig(g, t):
-        seen.append(gc.isenabled())
-        return np.sin(9 * t + g)
-
-    assert gc.isenabled()
-    res = run_core(sig, np.arange(6), _setup(6, 0.5), CoreSettings(engine=engine))
-    assert res.t.size > 0 and seen and not any(seen) and gc.isenabled()
-
-    def bad(g, t):
-        raise RuntimeError("renderer failed")
-
-    with pytest.raises(RuntimeError, match="renderer failed"):
-        run_core(bad, np.arange(6), _setup(6, 0.5), CoreSettings(engine=engine))
-    assert gc.isenabled()
-    gc.disable()
-    try:
-        run_core(sig, np.arange(6), _setup(6, 0.5), CoreSettings(engine=engine))
-        assert not gc.isenabled()
-    finally:
-        gc.enable()
-
-
-def test_a_jump_larger_than_the_first_event_chunk_grows_it():
-    # one pixel, one jump of 1200 levels: more events on one leg than the first chunk
-    # (4·P + 1024) holds; the compiled engine must grow the chunk, not loop or overflow
-    pytest.importorskip("numba")
+def test_a_jump_of_1200_levels_gives_1200_on_events_at_the_jump():
+    # one pixel, one jump of 1200 levels at t = 0.5: bisected down to min_step, every
+    # level crossed on that one leg, in order
     sig = lambda g, t: 600.0 * (t >= 0.5)                     # noqa: E731
-    out = {e: run_core(sig, np.arange(1), _setup(1, 0.5), CoreSettings(engine=e))
-           for e in ("numpy", "compiled")}
-    assert out["compiled"].t.size == 1200 and np.all(out["compiled"].p == 1)
-    for f in "gtp":
-        np.testing.assert_array_equal(getattr(out["compiled"], f), getattr(out["numpy"], f))
+    s = CoreSettings()
+    out = run_core(sig, np.arange(1), _setup(1, 0.5), s)
+    assert out.t.size == 1200 and np.all(out.p == 1) and np.all(out.g == 0)
+    assert np.all(np.diff(out.t) >= 0)
+    assert np.all(np.abs(out.t - 0.5) <= s.min_step)
 
 
 def test_thresholds_must_be_positive():
@@ -343,51 +207,12 @@ def test_thresholds_must_be_positive():
                  CoreSettings())
 
 
-def test_the_compiled_time_order_refuses_non_finite_stamps():
-    pytest.importorskip("numba")
-    t = np.random.default_rng(0).random(5 * CHUNK)
-    t[7] = np.nan
-    with pytest.raises(ValueError, match="expected finite time stamps"):
-        time_order(t, np.arange(t.size))
-
-
-@pytest.mark.skipif(not compiled_core.AVAILABLE, reason="numba not installed")
-def test_compiled_turn_refinement_equals_the_numpy_one():
-    """``compiled_paths.refine_turns`` against ``paths.refine_turns`` on 4000 brackets of
-    peaks and troughs, the vertex left or right of the middle sample, every kind of gap:
-    the same points, gaps, moved mask and sample counts, bit for bit."""
-    from eventrecon.sim import compiled_paths, paths
-
-    rng = np.random.default_rng(3)
-    K = 4000
-    sig = np.where(rng.random(K) < 0.5, 1.0, -1.0)
-    amp, w, t0 = rng.uniform(0.1, 2.0, K), rng.uniform(5.0, 60.0, K), rng.uniform(0.2, 0.8, K)
-
-    def signal(g, t):                              # a peak (sig +1) or trough at t0
-        return sig[g] * amp[g] * np.cos(w[g] * (t - t0[g])) + 0.3 * g / K
-
-    h = rng.uniform(0.2, 1.0, K) / w               # samples around t0, either side
-    xb = t0 + rng.uniform(-0.5, 0.5, K) * h
-    x = np.stack([xb - h * rng.uniform(0.5, 1.5, K), xb, xb + h * rng.uniform(0.5, 1.5, K)])
-    g = np.arange(K)
-    y = np.stack([signal(g, xi) for xi in x])
-    gap = np.where(rng.random(K) < 0.3, -np.inf, rng.uniform(-1e-3, 0.02, K) * amp)
-    tol = 1e-6
-
-    tri_np = [[xi.copy() for xi in x], [yi.copy() for yi in y], [yi.copy() for yi in y]]
-    gap_np, st_np = gap.copy(), {"n_samples": 0, "turn_samples": 0}
-    setup = SignalSetup(np.ones(K), np.ones(K), np.full((K, 3), 1 / 3))
-    moved_np = paths.refine_turns(signal, g, sig, tri_np, np.ones(K, bool), gap_np, setup,
-                                  tol, st_np)
-    tri, gap_c = np.concatenate([x, y]), gap.copy()
-    st_c = {"n_samples": 0, "turn_samples": 0}
-    moved = compiled_paths.refine_turns(signal, g, sig, tri, gap_c, tol, st_c)
-
-    assert st_c == st_np and st_np["turn_samples"] > K      # two rounds for many turns
-    np.testing.assert_array_equal(moved, moved_np)
-    assert 0 < moved.sum() < K
-    assert ((tri_np[0][1] > xb) & moved).any() and ((tri_np[0][1] < xb) & moved).any()
-    for r in range(3):
-        np.testing.assert_array_equal(tri[r], tri_np[0][r])
-        np.testing.assert_array_equal(tri[3 + r], tri_np[1][r])
-    np.testing.assert_array_equal(gap_c, gap_np)
+def test_the_time_order_refuses_non_finite_stamps():
+    t = np.random.default_rng(0).random(LARGE)
+    g = np.arange(t.size)
+    for bad in (np.nan, np.inf):
+        t[7] = bad
+        with pytest.raises(ValueError, match="expected finite time stamps"):
+            time_order(t, g)
+        with pytest.raises(ValueError, match="expected finite time stamps"):
+            merge_by_time([(g, t, np.ones(t.size, np.int8))])

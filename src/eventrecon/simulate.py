@@ -18,7 +18,6 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from eventrecon.allocator import retain_freed_memory
 from eventrecon.errors import InputError
 from eventrecon.overrides import report_bad_overrides
 from eventrecon.sim.pipeline import ensure_dataset
@@ -50,6 +49,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    retain_freed_memory()
     report_bad_overrides()
     main()

@@ -36,7 +36,6 @@ import torch
 from torch import Tensor
 
 from eventrecon.errors import InputError
-from eventrecon.events import compiled_queries
 from eventrecon.events.stream import EventStream
 
 __all__ = ["DecayedEvents", "decayed_prefix"]
@@ -241,8 +240,7 @@ class DecayedEvents:
         ``V(max(t0, t1)) = values[hi]`` and ``V(min(t0, t1)) = values[lo − 1]`` (0 when
         ``lo`` starts the row). The events in time order make the window's events one
         slice (:attr:`_time_order`), whose positions give ``lo, hi`` per pixel by a
-        scatter of their minimum and maximum: no search (on a CPU one compiled loop,
-        :func:`eventrecon.events.compiled_queries.window_all`). The same values as
+        scatter of their minimum and maximum: no search. The same values as
         :meth:`window` on every pixel, to the bit.
         """
         r0, r1 = sorted(int(self._rank(t, torch.Size([1]))[0]) for t in (t0, t1))
@@ -251,10 +249,6 @@ class DecayedEvents:
             ranks, pixels, positions = self._time_order
             bounds = torch.tensor([r0, r1], dtype=ranks.dtype, device=self.device)
             a, b = torch.searchsorted(ranks, bounds, right=True).tolist()
-            fast = compiled_queries.window_all(self._time_order, a, b, self.values,
-                                               self.offsets, bool(t0 <= t1), out)
-            if fast is not None:
-                return fast.reshape(self.n_views, self.height, self.width)
             pix, pos = pixels[a:b].long(), positions[a:b].long()
             hi = torch.full_like(out, -1, dtype=torch.int64).scatter_reduce_(0, pix, pos, "amax")
             lo = torch.full_like(hi, self.n_events).scatter_reduce_(0, pix, pos, "amin")
@@ -294,15 +288,11 @@ class DecayedEvents:
         return rank.reshape(t.shape).expand(shape)
 
     def _lookup(self, pix: Tensor, rank: Tensor) -> Tensor:
-        """``V`` after the last event of ``pix`` with time rank ``≤ rank`` (0 if none); on
-        a CPU a binary search of each pixel's row in a compiled loop
-        (:func:`eventrecon.events.compiled_queries.lookup`, the same values)."""
+        """``V`` after the last event of ``pix`` with time rank ``≤ rank`` (0 if none): the
+        last key ``≤ pix·(U+1) + rank`` by one ``searchsorted`` over all keys, kept where
+        it lies in the pixel's own row (``≥ offsets[pix]``)."""
         if self.n_events == 0:
             return torch.zeros(pix.shape, dtype=torch.float64, device=self.device)
-        fast = compiled_queries.lookup(self.keys, self.values, self.offsets, pix, rank,
-                                       self.times.shape[0] + 1)
-        if fast is not None:
-            return fast.reshape(pix.shape)
         query = pix * (self.times.shape[0] + 1) + rank
         idx = torch.searchsorted(self.keys, query, right=True) - 1
         found = idx >= self.offsets[pix]

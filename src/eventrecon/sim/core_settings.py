@@ -13,7 +13,7 @@ import numpy as np
 
 __all__ = ["CoreSettings", "SignalSetup", "STEP_TARGET"]
 
-#: The next step aims at this fraction of the sampling bounds (both engines).
+#: The next step aims at this fraction of the sampling bounds.
 STEP_TARGET = 0.95
 
 
@@ -29,9 +29,6 @@ class CoreSettings:
         turn_tol: a turn within reach of a level is refined while the path may miss
             more than ``turn_tol·θ/2`` of its extremum.
         block: most samples per pixel evaluated in one iteration.
-        engine: ``"auto"`` (the compiled loops of :mod:`~eventrecon.sim.compiled_core`
-            where they apply and numba is installed, numpy otherwise), ``"numpy"`` or
-            ``"compiled"`` (an error where it does not apply). Both give the same events.
     """
 
     threshold: float = 0.5
@@ -41,7 +38,6 @@ class CoreSettings:
     max_curvature: float = 1.0
     turn_tol: float = 1e-3
     block: int = 8
-    engine: str = "auto"
 
 
 @dataclass

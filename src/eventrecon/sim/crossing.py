@@ -30,17 +30,10 @@ non-finite coefficient gives the straight-leg time.
 
 The core keeps five points of a pixel's path between iterations and holds back its last
 two legs (:data:`KEEP`, :data:`HOLD`), so every leg but a path's first two and last two
-has both its neighbours a side when it is timed. (Before commit ``079df7d`` the core kept
-three points and held back one leg: the first and last leg of every block lacked a node,
-29 % of the grating's crossings at θ = 0.5, timed on a quartic with a median error of
-0.49 µs against 0.11 µs on the quintic's legs.)
+has both its neighbours a side when it is timed.
 
-The interpolation error of the time falls as ``h⁶`` (the cubic through ``c−1 … c+2``
-that sessions before 58 used: ``h⁴``): on the benchmark's sliding grating the median
-error fell from 0.93 to 0.14 µs at θ = 0.5, and from 0.118 to 0.005 µs at θ = 0.2, for
-the same samples (``docs/results/event_core.md``). :func:`cross_times` is the numpy form;
-:func:`eventrecon.sim.compiled_paths.cross_time` the scalar one, expression for expression,
-so both engines give the same bits.
+The interpolation error of the time falls as ``h⁶`` (a cubic through ``c−1 … c+2``:
+``h⁴``). :func:`cross_times` times a batch of crossings at once, each on its own leg.
 """
 
 from __future__ import annotations
@@ -52,8 +45,8 @@ __all__ = ["cross_times", "newton_form", "first_root", "poly"]
 #: Outer nodes in the order they enter the Newton form: offsets from the leg's start
 #: ``c`` and their side (``-1`` left, ``+1`` right).
 NODES = ((-1, -1), (2, 1), (-2, -1), (3, 1))
-#: Points of a pixel's path the core keeps between iterations, and the legs it holds back
-#: (both engines): a leg is emitted once its two right neighbours are sampled, and the
+#: Points of a pixel's path the core keeps between iterations, and the legs it holds back:
+#: a leg is emitted once its two right neighbours are sampled, and the
 #: first leg of the next path still has its two left ones. In a path of the kept points
 #: and new samples the legs ``FIRST_LEG … length − 2 − HOLD`` are emitted (all to the end
 #: once the path reaches ``t = 1``), and the turns at samples ``FIRST_TURN … length − 2``

@@ -24,16 +24,13 @@ their crossings are stamped within ``min_step`` of the jump.
 interpolation, evaluated) whenever a level lies within reach, and a level the true
 signal passes by more than about ``turn_tol·θ`` is crossed (:mod:`~eventrecon.sim.paths`).
 
-**Engines.** The same rules run in numpy (whole-array passes over blocks ``[M, N]``,
-:mod:`~eventrecon.sim.paths`) or, for the ideal pixel (no low-pass filter, no re-drawn
-thresholds, no ``busy`` map), as compiled per-pixel loops
-(:mod:`~eventrecon.sim.compiled_core`, numba), which give the same events bit for bit;
-``CoreSettings.engine`` chooses (``auto``: compiled where it applies).
+The rules run as whole-array numpy passes over blocks ``[M, N]`` of the running pixels
+(:mod:`~eventrecon.sim.paths`).
 
 **Order.** Each pixel's events come in time order; the events of all pixels are put in
-``(t, g)`` order by counting sorts (:func:`~eventrecon.sim.merge.merge_by_time`), the
-result equal to a global ``lexsort``. :func:`frame_events` is the frame-fed counterpart:
-the crossings of the log signal linear between given frames.
+``(t, g)`` order by one ``lexsort`` (:func:`~eventrecon.sim.merge.merge_by_time`).
+:func:`frame_events` is the frame-fed counterpart: the crossings of the log signal linear
+between given frames.
 """
 
 from __future__ import annotations
@@ -44,9 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from eventrecon.sim import compiled_core
 from eventrecon.sim.core_settings import STEP_TARGET, CoreSettings, SignalSetup
-from eventrecon.sim.gc_pause import gc_paused
 from eventrecon.sim.merge import merge_by_time, time_order
 from eventrecon.sim.paths import PathState, commit
 
@@ -65,8 +60,8 @@ class CoreResult:
     Attributes:
         g: ``[E]`` int64 global pixel; t: ``[E]`` float64 normalised time; p: ``[E]`` int8.
         n_samples: rendered pixel samples (accepted + rejected + turn refinements,
-            including ``t = 0``; the numpy engine also counts the repeated last sample
-            of a block cut short, which it evaluates again, the compiled one does not).
+            including ``t = 0``, and the repeats of the last sample that fill a block cut
+            short where the whole block is evaluated).
         n_forced: samples accepted at ``min_step`` above the bounds (discontinuities).
         samples: if requested, ``(g, t, L)`` of every path sample (filtered signal).
         extra: ``turn_samples`` (refinement evaluations) and what callers add.
@@ -130,8 +125,8 @@ def frame_events(frames: np.ndarray | Sequence[np.ndarray], times: np.ndarray,
         ``(g [E] int64, t [E] float64, p [E] int8)`` in ``(t, g)`` order: from frame ``k``
         to ``k+1`` every crossing of ``r + θ_on`` (then ``r ← r + θ_on``; OFF alike) at
         ``t_k + (r + θ_on − L_k)/(L_{k+1} − L_k)·(t_{k+1} − t_k)``, as :func:`crossings`.
-        Each interval's events are ordered by :func:`~eventrecon.sim.merge.time_order`
-        (counting sorts); the intervals follow each other, so no global sort is needed.
+        Each interval's events are ordered by :func:`~eventrecon.sim.merge.time_order`;
+        the intervals follow each other, so no global sort is needed.
 
     >>> g, t, p = frame_events(np.array([[0., 0.], [1.2, -0.6]]), np.array([0., 1.]), .5, .5)
     >>> g.tolist(), t.round(4).tolist(), p.tolist()
@@ -315,24 +310,11 @@ def _check_thresholds(setup: SignalSetup) -> None:
                              f"{np.min(th)}")
 
 
-def _compiled(s: CoreSettings, setup: SignalSetup, busy: np.ndarray | None,
-              record_samples: bool) -> bool:
-    """Whether :func:`run_core` runs the compiled engine (``settings.engine``)."""
-    if s.engine not in ("auto", "numpy", "compiled"):
-        raise ValueError(f"CoreSettings.engine: expected 'auto', 'numpy' or 'compiled', "
-                         f"got {s.engine!r}")
-    fits = (setup.lowpass is None and setup.redraw is None and busy is None
-            and not record_samples)
-    if s.engine == "compiled" and not (fits and compiled_core.AVAILABLE):
-        raise ValueError("CoreSettings.engine='compiled' needs numba and an ideal pixel: no "
-                         "low-pass filter, no re-drawn thresholds, no busy map, no recording")
-    return s.engine != "numpy" and fits and compiled_core.AVAILABLE
-
-
-def _run_numpy(signal: SignalFn, pix: np.ndarray, setup: SignalSetup, settings: CoreSettings,
-               busy: np.ndarray | None, record_samples: bool, stats: dict
-               ) -> tuple[list, list | None, int]:
-    """The numpy engine of :func:`run_core`: ``(event parts, recorded samples, iterations)``."""
+def _follow(signal: SignalFn, pix: np.ndarray, setup: SignalSetup, settings: CoreSettings,
+            busy: np.ndarray | None, record_samples: bool, stats: dict
+            ) -> tuple[list, list | None, int]:
+    """The adaptive loop of :func:`run_core`: every pixel's path followed from ``t = 0``
+    to ``1``. Returns ``(event parts, recorded samples or None, iterations)``."""
     L0 = signal(pix, np.zeros(pix.size)) if pix.size else np.zeros(0)
     st = PathState(pix, L0, setup, settings, busy)
     out: list = []
@@ -379,15 +361,9 @@ def run_core(signal: SignalFn, pix: np.ndarray, setup: SignalSetup, settings: Co
     stats = {"n_samples": 0, "n_forced": 0, "turn_samples": 0}
     signal = _finite(signal)
     _check_thresholds(setup)
-    with gc_paused():
-        if _compiled(settings, setup, busy, record_samples):
-            out, it = compiled_core.run_compiled(signal, pix, setup, settings, stats)
-            rec = None
-        else:
-            out, rec, it = _run_numpy(signal, pix, setup, settings, busy, record_samples,
-                                      stats)
-        g, t, p = merge_by_time(out) if out else (np.zeros(0, np.int64), np.zeros(0),
-                                                  np.zeros(0, np.int8))
+    out, rec, it = _follow(signal, pix, setup, settings, busy, record_samples, stats)
+    g, t, p = merge_by_time(out) if out else (np.zeros(0, np.int64), np.zeros(0),
+                                              np.zeros(0, np.int8))
     samples = None
     if rec is not None:
         samples = tuple(np.concatenate([r[i] for r in rec]) for i in range(3))

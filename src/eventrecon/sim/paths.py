@@ -205,8 +205,7 @@ def _walk_held(r: np.ndarray, PL: np.ndarray, i: np.ndarray, a: np.ndarray, c: n
                on: np.ndarray, off: np.ndarray) -> np.ndarray:
     """The reference levels ``r [K]`` of the columns ``i`` of the paths ``PL`` at samples
     ``a`` carried on to the samples ``c ≥ a`` over the held-back legs between (at most
-    ``HOLD``), level by level as emission would, emitting nothing (the compiled core's
-    ``queue_turns`` walk)."""
+    ``HOLD``), level by level as emission would, emitting nothing."""
     r = r.copy()
     for k in range(HOLD):
         act = np.flatnonzero(a + k < c)
