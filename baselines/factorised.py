@@ -14,6 +14,10 @@ with no decoder network (the authors' ``res.view(N, F, R).sum(-1)``). Coordinate
 the world positions normalised to the clipping cylinder's bounding box
 (:meth:`set_scene_box`, called by the run with its renderer's cylinder) and ``2t − 1``.
 Every factor starts as ``N(0, (init_gain / R)²)``.
+
+The rank sum has two implementations behind ``implementation``
+(:mod:`eventrecon.kernels`): the PyTorch reference (:meth:`FactorisedField.rank_sum`
+over ``grid_sample``) and a subclass's compiled CPU kernel (:meth:`kernel`).
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from baselines.heads import activate, activate_density
 from baselines.schedules import GridGrowth, GrowthPlan
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
+from eventrecon.kernels import resolve, use_kernel
 
 #: Output features per rank component: raw density and three raw colours.
 FEATURES = 4
@@ -44,11 +49,14 @@ class FactorisedField(Field):
         plan: the growth of the per-axis resolution ``(x, y, z, t)``.
         init_gain: factors start as ``N(0, (init_gain / R)²)``.
         seed: initialisation seed.
+        implementation: ``"auto"``, ``"torch"`` or ``"numba"`` (:mod:`eventrecon.kernels`).
     """
 
     def __init__(self, axes: Sequence[Sequence[int]], align_corners: Sequence[bool],
-                 rank: int, plan: GrowthPlan, init_gain: float, seed: int):
+                 rank: int, plan: GrowthPlan, init_gain: float, seed: int,
+                 implementation: str = "auto"):
         super().__init__()
+        self.implementation = resolve(implementation)
         if rank < 1:
             raise InputError("conf/model", "rank", "an integer >= 1", rank)
         for name, res in (("resolution_init", plan.start), ("resolution_final", plan.end)):
@@ -102,9 +110,22 @@ class FactorisedField(Field):
     def rank_sum(self, coords: Tensor, features: int = FEATURES) -> Tensor:
         """``o [N, features]``: the first ``features`` outputs' rank components at
         ``coords [N, 4]`` summed over the rank (channel ``f·R + r`` is output ``f``'s
-        component ``r``)."""
+        component ``r``). The reference samples each factor with ``grid_sample``
+        (:func:`~baselines.grids.sample_points`), combines the samples (:meth:`combine`)
+        and sums; :meth:`kernel` computes the same where ``implementation`` chooses it."""
+        factors = self.grids.leading(self.channels(features))
+        if use_kernel(self.implementation, self.kernel_unsupported(factors, coords)):
+            return self.kernel(factors, coords)
         out = self.combine(self.grids(coords, self.channels(features)))  # [N, features·R]
         return out.reshape(-1, features, self.rank).sum(-1)
+
+    def kernel_unsupported(self, factors: list[Tensor], coords: Tensor) -> str | None:
+        """What the compiled rank sum needs and this call lacks (``None``: it applies)."""
+        return "a compiled kernel for this backbone"
+
+    def kernel(self, factors: list[Tensor], coords: Tensor) -> Tensor:
+        """The compiled rank sum of ``factors`` at ``coords``: :meth:`rank_sum`'s values."""
+        raise NotImplementedError
 
     def channels(self, features: int) -> int | None:
         """The leading channels of each factor that the first ``features`` outputs read;

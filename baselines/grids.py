@@ -8,9 +8,9 @@ on vertex ``R − 1``; ``align_corners=False`` puts them on the outer edges of t
 and last cells (vertex ``i`` sits at ``(2i + 1)/R − 1``). Outside the sampled range the
 grid is extended by its border values (``padding="border"``) or by zeros
 (``padding="zeros"``, ``grid_sample``'s default, which the authors' code uses).
-A :class:`FactorGrids` factor keeps that shape but stores its channels innermost
-(:func:`channels_last`), the layout the CPU's compiled interpolation reads
-(:mod:`baselines.interp`).
+On a CPU a :class:`FactorGrids` factor keeps that shape but stores its channels
+innermost (:func:`channels_last`), the layout the compiled rank sums of
+:mod:`eventrecon.kernels.factor_grids` read as rows.
 
 Scene normalisation (:func:`box_normalize`): world ``xyz`` is mapped from a box (the
 clipping cylinder's bounding box, set by the run) to ``[-1, 1]^3`` and the segment time
@@ -24,56 +24,17 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from baselines.interp import interpolate, vertex_coords
-from eventrecon.errors import InputError
-from eventrecon.sim.jit import AVAILABLE, njit_borrowing
-
 _MODES = {1: "linear", 2: "bilinear", 3: "trilinear"}
-
-#: Fewest points per batch entry when :func:`sample_grid` splits its points on a CPU.
-#: Forward + backward of a 32-channel plane on 2 threads (docs/results/history.md,
-#: "Session 44"), one entry → two: 128² at 4096 points 2.61 → 3.09 ms, at 8192 4.91 →
-#: 3.66 ms, at 39 040 28.3 → 14.4 ms.
-MIN_SPLIT_POINTS = 4096
-
-
-def cpu_batches(n: int, grid: Tensor) -> int:
-    """Batch entries to split ``n`` points of ``grid [C, R_0, …]`` into for
-    ``grid_sample``: the CPU kernels, forward and backward, run a batch's entries in
-    parallel and each entry's points on one thread, so one image sampled at ``n`` points
-    keeps one core busy. The threads' count there, with at least :data:`MIN_SPLIT_POINTS`
-    points per entry and at most ``16 n`` grid cells per channel over all entries (each
-    entry's image gradient is a buffer of the grid's size, zeroed and summed: a 512²
-    plane split in two gains at 39 040 points, 90 → 80 ms, and loses at 16 384, 45 →
-    56 ms); 1 elsewhere."""
-    if grid.device.type != "cpu":
-        return 1
-    cells = max(1, grid[0].numel())
-    return max(1, min(torch.get_num_threads(), n // MIN_SPLIT_POINTS, 16 * n // cells))
-
-
-@njit_borrowing
-def _box_normalize(xyz: Any, t: Any, lo: Any, hi: Any, units: Any, out: Any) -> None:
-    """:func:`box_normalize` point by point, with its expressions in ``xyz``'s dtype
-    (``units``: 1 and 2 in that dtype)."""
-    one, two = units[0], units[1]
-    for n in range(xyz.shape[0]):
-        for k in range(3):
-            out[n, k] = two * (xyz[n, k] - lo[k]) / (hi[k] - lo[k]) - one
-        out[n, 3] = two * t[n] - one
 
 
 def box_normalize(xyz: Tensor, t: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     """Map world positions in the box ``[lo, hi]`` and segment time to ``[-1, 1]^4``.
 
     ``c_k = 2 (x_k − lo_k) / (hi_k − lo_k) − 1`` for ``k = x, y, z`` and ``c_t = 2t − 1``.
-    On a CPU, points that need no gradient go through one compiled loop with the same
-    expressions (the same bits) instead of a dozen tensor operations.
 
     Args:
         xyz: ``[N, 3]`` world positions.
@@ -88,42 +49,45 @@ def box_normalize(xyz: Tensor, t: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     [[1.0, -1.0, 0.0, -0.5]]
     """
     lo, hi = lo.to(xyz), hi.to(xyz)
-    t = t.reshape(-1, 1).to(xyz.dtype)
-    if (AVAILABLE and xyz.device.type == "cpu" and xyz.dtype in (torch.float32, torch.float64)
-            and xyz.dim() == 2 and xyz.shape[1] == 3 and t.shape[0] == xyz.shape[0]
-            and lo.numel() == hi.numel() == 3
-            and not (torch.is_grad_enabled()
-                     and any(x.requires_grad for x in (xyz, t, lo, hi)))):
-        out = xyz.new_empty(xyz.shape[0], 4)
-        arr = xyz.detach().contiguous().numpy()
-        _box_normalize(arr, t.detach().reshape(-1).contiguous().numpy(),
-                       lo.detach().reshape(3).contiguous().numpy(),
-                       hi.detach().reshape(3).contiguous().numpy(),
-                       np.array([1.0, 2.0], dtype=arr.dtype), out.numpy())
-        return out
     c = 2.0 * (xyz - lo) / (hi - lo) - 1.0
-    return torch.cat([c, 2.0 * t - 1.0], dim=-1)
+    return torch.cat([c, 2.0 * t.reshape(-1, 1).to(xyz.dtype) - 1.0], dim=-1)
+
+
+def vertex_coords(coords: Tensor, sizes: Sequence[int], align_corners: bool,
+                  padding: str) -> Tensor:
+    """Normalised coordinates ``[N, d]`` in ``[-1, 1]`` → vertex units ``[N, d]``, by
+    ``grid_sample``'s formulas: ``(c + 1)/2 · (R − 1)`` (``align_corners``) or
+    ``((c + 1) R − 1)/2``; ``padding="border"`` clamps to ``[0, R − 1]``.
+
+    >>> vertex_coords(torch.tensor([[-1.0], [1.0]]), (5,), True, "zeros").flatten().tolist()
+    [0.0, 4.0]
+    >>> vertex_coords(torch.tensor([[-1.0], [1.0]]), (5,), False, "zeros").flatten().tolist()
+    [-0.5, 4.5]
+    """
+    res = torch.tensor(list(sizes), dtype=coords.dtype, device=coords.device)
+    p = (coords + 1) / 2 * (res - 1) if align_corners else ((coords + 1) * res - 1) / 2
+    if padding == "border":
+        p = torch.minimum(p.clamp(min=0), res - 1)
+    return p
 
 
 def sample_points(grid: Tensor, coords: Tensor, align_corners: bool = True,
                   padding: str = "border", axes: Sequence[int] | None = None) -> Tensor:
-    """:func:`sample_grid`, channel-last: ``[N, C]``.
-
-    A grid of 1–3 axes on the CPU goes to the compiled loops of :mod:`baselines.interp`
-    (channel-last reads; the grid's gradient only). Anything else (a GPU, a grid of four
-    axes, coordinates that need a gradient, mixed dtypes, no numba) goes to
-    ``grid_sample``, on a CPU with its points split into :func:`cpu_batches` batch
-    entries (:func:`sample_grid_split`); the result is then a transposed view. With
-    ``axes``, ``coords [N, D]`` and grid axis ``k`` reads column ``axes[k]`` (no gather on
-    the compiled path)."""
-    out = interpolate(grid, coords, align_corners, padding, axes)
-    if out is None:
-        if axes is not None:
-            coords = coords[:, list(axes)]
-        k = cpu_batches(coords.shape[0], grid)
-        out = unsplit(sample_grid_split(grid, coords, k, align_corners, padding),
-                      coords.shape[0]).t()
-    return out
+    """:func:`sample_grid`, channel-last: ``[N, C]``. With ``axes``, ``coords [N, D]`` and
+    grid axis ``k`` reads column ``axes[k]``."""
+    if axes is not None:
+        coords = coords[:, list(axes)]
+    d = grid.dim() - 1
+    if d == 1:  # a line as an [R, 1] image; the dummy width coordinate samples column 0
+        img = grid.unsqueeze(-1).unsqueeze(0)
+        g = torch.stack([torch.zeros_like(coords[:, 0]), coords[:, 0]], dim=-1)
+    else:  # grid_sample wants (x -> last axis, y -> previous axis, ...): reversed order
+        img = grid.unsqueeze(0)
+        g = coords.flip(-1)
+    g = g.to(img.dtype).reshape(1, -1, *([1] * (max(d, 2) - 1)), g.shape[-1])
+    out = F.grid_sample(img, g, mode="bilinear", padding_mode=padding,
+                        align_corners=align_corners)                 # [1, C, N, 1…]
+    return out.reshape(grid.shape[0], -1).t()
 
 
 def sample_grid(grid: Tensor, coords: Tensor, align_corners: bool = True,
@@ -154,55 +118,12 @@ def sample_grid(grid: Tensor, coords: Tensor, align_corners: bool = True,
     return sample_points(grid, coords, align_corners, padding).t()
 
 
-def sample_grid_split(grid: Tensor, coords: Tensor, k: int, align_corners: bool = True,
-                      padding: str = "border") -> Tensor:
-    """:func:`sample_grid` with the points split into ``k`` ``grid_sample`` batch entries
-    of ``m = ceil(N / k)`` points, the last padded with the point ``0``: ``[k, C, m]``,
-    point ``i`` at ``[i // m, :, i % m]`` (:func:`unsplit` gives ``[C, N]``). Factors
-    sampled with the same ``k`` combine channel by channel in this layout, so only the
-    combination is brought back to ``[C, N]``.
-
-    Args:
-        grid: ``[C, R_0, ..., R_{d-1}]``; coords: ``[N, d]``; k: entries (>= 1).
-        align_corners, padding: the convention (module docstring).
-
-    Returns:
-        ``[k, C, m]`` interpolated features.
-    """
-    if k < 1:
-        raise InputError("sample_grid_split", "k", "an integer >= 1", k)
-    d = grid.dim() - 1
-    n = coords.shape[0]
-    if d == 1:  # a line as an [R, 1] image; the dummy width coordinate samples column 0
-        img = grid.unsqueeze(-1).unsqueeze(0)
-        g = torch.stack([torch.zeros_like(coords[:, 0]), coords[:, 0]], dim=-1)
-    else:  # grid_sample wants (x -> last axis, y -> previous axis, ...): reversed order
-        img = grid.unsqueeze(0)
-        g = coords.flip(-1)
-    m = -(-n // k)                                     # points per entry, the last padded
-    g = g.to(img.dtype)
-    if k * m > n:
-        g = F.pad(g, (0, 0, 0, k * m - n))
-    g = g.reshape(k, m, *([1] * (max(d, 2) - 1)), g.shape[-1])     # [k, m, 1…, 2|3]
-    out = F.grid_sample(img.expand(k, *img.shape[1:]), g, mode="bilinear",
-                        padding_mode=padding, align_corners=align_corners)   # [k, C, m, 1…]
-    return out.reshape(k, grid.shape[0], m)
-
-
-def unsplit(values: Tensor, n: int) -> Tensor:
-    """``[k, C, m]`` (:func:`sample_grid_split`'s layout) -> ``[C, N]``, the padding
-    dropped; with ``k = 1`` a view."""
-    k, c, m = values.shape
-    out = values[0] if k == 1 else values.transpose(0, 1).reshape(c, k * m)
-    return out[:, :n] if k * m > n else out
-
-
 def sample_grid_reference(grid: Tensor, coords: Tensor, align_corners: bool = True,
                           padding: str = "border") -> Tensor:
     """Slow, explicit version of :func:`sample_grid`: a Python loop over the ``2^d`` corners
     with integer gathers. Same shapes (``[C, N]``) and conventions; for tests. The vertex
-    units are :func:`baselines.interp.vertex_coords`' (the one statement of the convention;
-    the tests check it through ``grid_sample``, which computes its own)."""
+    units are :func:`vertex_coords`' (the tests check them against ``grid_sample``, which
+    computes its own)."""
     d = grid.dim() - 1
     sizes = tuple(grid.shape[1:])
     pos = vertex_coords(coords, sizes, align_corners, padding)
@@ -273,8 +194,8 @@ def geometric_resolutions(start: Sequence[int], end: Sequence[int], n_stages: in
 
 def channels_last(grid: Tensor) -> Tensor:
     """``grid [C, R_0, …]`` with the same shape and values, its channels innermost in
-    memory (strides ``(1, …, C)``): the layout :mod:`baselines.interp` reads without a
-    copy, and its gradient's layout, so that autograd keeps the gradient as it comes.
+    memory (strides ``(1, …, C)``): the rows :mod:`eventrecon.kernels.factor_grids` reads
+    without a copy, and the layout of its gradient, which autograd keeps as it comes.
 
     >>> channels_last(torch.zeros(4, 5, 6)).stride()
     (1, 24, 4)
@@ -284,7 +205,7 @@ def channels_last(grid: Tensor) -> Tensor:
 
 def device_layout(grid: Tensor) -> Tensor:
     """A factor's layout on its device: :func:`channels_last` on a CPU, contiguous
-    elsewhere (where ``grid_sample`` reads it and fused optimisers step it as before)."""
+    elsewhere (where ``grid_sample`` reads it and fused optimisers step it)."""
     return channels_last(grid) if grid.device.type == "cpu" else grid.contiguous()
 
 

@@ -27,10 +27,10 @@ from collections.abc import Sequence
 
 from torch import Tensor
 
-from baselines.factorised import FEATURES, FactorisedField
-from baselines.hex_fused import hex_rank_sum
+from baselines.factorised import FactorisedField
 from baselines.schedules import GrowthPlan
 from eventrecon.errors import InputError
+from eventrecon.kernels import factor_grids
 
 #: (spatial plane axes, space-time plane axes as the authors sample them, line axis):
 #: axes 0..3 = (x, y, z, t); a plane's first axis indexes its first grid dimension.
@@ -48,6 +48,7 @@ class HexPlaneField(FactorisedField):
             space-time planes) or ``"swapped"``.
         init_gain: factors start as ``N(0, (init_gain / R)²)``.
         seed: initialisation seed.
+        implementation: the rank sum's (:mod:`eventrecon.kernels`).
 
     >>> import torch
     >>> f = HexPlaneField(rank=2, resolution=(8, 8, 8, 6))
@@ -57,7 +58,8 @@ class HexPlaneField(FactorisedField):
     """
 
     def __init__(self, rank: int = 8, resolution: Sequence[int] = (500, 500, 500, 24),
-                 spacetime_layout: str = "authors", init_gain: float = 1.0, seed: int = 0):
+                 spacetime_layout: str = "authors", init_gain: float = 1.0, seed: int = 0,
+                 implementation: str = "auto"):
         if spacetime_layout not in ("authors", "swapped"):
             raise InputError("conf/model", "spacetime_layout", "authors or swapped",
                              spacetime_layout)
@@ -65,7 +67,8 @@ class HexPlaneField(FactorisedField):
         axes = ([s for s, _, _ in TERMS] + [st for _, st, _ in TERMS]
                 + [(line,) for _, _, line in TERMS])
         plan = GrowthPlan(tuple(resolution), tuple(resolution), 1, 0)
-        super().__init__(axes, [True] * 6 + [False] * 3, rank, plan, init_gain, seed)
+        super().__init__(axes, [True] * 6 + [False] * 3, rank, plan, init_gain, seed,
+                         implementation)
 
     def shapes(self, resolution: Sequence[int]) -> list[tuple[int, ...]]:
         """Three ``[N, N]`` planes, three space-time planes, three ``[N]`` lines."""
@@ -86,10 +89,13 @@ class HexPlaneField(FactorisedField):
         """``Σ_k P_space,k · P_spacetime,k · v_k`` per channel."""
         return sum(samples[k] * samples[k + 3] * samples[k + 6] for k in range(3))
 
-    def rank_sum(self, coords: Tensor, features: int = FEATURES) -> Tensor:
-        """On a CPU, for factors that stay in cache, one compiled pass over the nine
-        (:mod:`baselines.hex_fused`: on one thread the same gradients to the bit, the rank
-        sum to rounding); factor by factor elsewhere."""
-        fused = hex_rank_sum(self.grids.leading(self.channels(features)), self.grids.axes,
-                             coords, self.grids.align_corners, self.grids.padding, self.rank)
-        return super().rank_sum(coords, features) if fused is None else fused
+    def kernel_unsupported(self, factors: list[Tensor], coords: Tensor) -> str | None:
+        return factor_grids.hex_unsupported(factors, self.grids.axes, coords,
+                                            self.grids.align_corners)
+
+    def kernel(self, factors: list[Tensor], coords: Tensor) -> Tensor:
+        """One compiled pass over the nine factors (:func:`~eventrecon.kernels.factor_grids.
+        hex_rank_sum`)."""
+        return factor_grids.hex_rank_sum(factors, self.grids.axes, coords,
+                                         self.grids.align_corners, self.grids.padding,
+                                         self.rank)

@@ -16,12 +16,11 @@ The level's feature is the quadrilinear interpolation over the 16 corners,
 ``sum_c prod_k w_k(c) F_l[idx(c)]`` with ``w_k = u_k R_{l,k} - i_k`` or its complement.
 All levels share one flat table with per-level offsets; the 16 corners and all levels
 of one kind (dense / hashed) are computed at once, then every level is gathered by one
-``embedding_bag`` (weighted sum of 16 rows) with a hand-written backward (one weighted
-``bincount`` per feature on CPU, ``index_add_`` elsewhere); ``compile=True``
-runs the index/weight computation through ``torch.compile``. On a CPU with numba the
-rows, weights, gather and scatter run instead in compiled loops, level by level
-(:mod:`baselines.hash_cpu`: the same values to rounding). Gradients flow to the table
-and the MLPs, not to the input coordinates (no loss of the method needs them).
+``embedding_bag`` (weighted sum of 16 rows), whose autograd backward scatters into the
+table. ``implementation`` (:mod:`eventrecon.kernels`) chooses between that reference and
+the compiled CPU loops of :mod:`eventrecon.kernels.hash_grid` (the same values to
+rounding). Gradients flow to the table and the MLPs, not to the input coordinates (no
+loss of the method needs them).
 
 The field (:class:`NGPField`) feeds the grid as the authors' code does: their
 tiny-cuda-nn grid expects coordinates in ``[0, 1]`` but receives the raw ``x, y, z in
@@ -44,41 +43,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-import baselines.hash_cpu as hash_cpu
 from baselines.heads import NGPDecoder
 from baselines.schedules import CylinderAnneal
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
+from eventrecon.kernels import hash_grid, resolve, use_kernel
 
 PRIMES: tuple[int, ...] = (1, 2654435761, 805459861, 3674653429)
-
-
-class _WeightedGather(torch.autograd.Function):
-    """``out[b] = sum_j w[b, j] table[idx[b, j]]`` with a scatter-add backward to ``table``."""
-
-    @staticmethod
-    def forward(ctx: Any, table: Tensor, idx: Tensor, w: Tensor) -> Tensor:  # type: ignore[override]
-        ctx.save_for_backward(idx, w)
-        ctx.rows = table.shape[0]
-        return F.embedding_bag(idx, table, per_sample_weights=w.to(table.dtype), mode="sum")
-
-    @staticmethod
-    def backward(ctx: Any, g: Tensor) -> tuple[Tensor, None, None]:  # type: ignore[override]
-        idx, w = ctx.saved_tensors
-        g = g.to(w.dtype)
-        if g.device.type == "cpu":
-            # one weighted bincount per feature f over the flat corners, weights w * g[:, f]
-            # written contiguous, rows kept int32 (no rows: int64 zeros, hence the cast): a
-            # strided column or an int64 copy of the 4.4 M rows each cost as much as a
-            # bincount (NGP step, 39 040 samples: 58 -> 23 ms); index_add_ is slower still
-            # (4.0 M corners into 0.96 M x 2 rows, one thread: 47 vs 201 ms)
-            rows = idx.reshape(-1)
-            return torch.stack([torch.bincount(rows, weights=(w * g[:, f, None]).reshape(-1),
-                                               minlength=ctx.rows)
-                                for f in range(g.shape[1])], 1).to(w.dtype), None, None
-        src = (w[:, :, None] * g[:, None, :]).reshape(-1, g.shape[-1])
-        grad = torch.zeros(ctx.rows, g.shape[-1], dtype=w.dtype, device=g.device)
-        return grad.index_add_(0, idx.reshape(-1).long(), src), None, None
 
 
 class HashEncoding(nn.Module):
@@ -92,6 +63,7 @@ class HashEncoding(nn.Module):
         init_scale: table initialised uniform in ``[-init_scale, init_scale]``.
         seed: initialisation seed.
         axis_scale: factors ``a_k`` of the cells per axis (default all 1).
+        implementation: ``"auto"``, ``"torch"`` or ``"numba"`` (:mod:`eventrecon.kernels`).
 
     >>> enc = HashEncoding(n_levels=2, log2_table_size=9, base_resolution=2)
     >>> enc.resolutions, enc.dense, enc(torch.rand(3, 4)).shape
@@ -101,8 +73,9 @@ class HashEncoding(nn.Module):
     def __init__(self, n_dims: int = 4, n_levels: int = 8, n_features: int = 2,
                  log2_table_size: int = 19, base_resolution: int = 8,
                  per_level_scale: float = 2.0, init_scale: float = 1e-4, seed: int = 0,
-                 axis_scale: Sequence[float] | None = None):
+                 axis_scale: Sequence[float] | None = None, implementation: str = "auto"):
         super().__init__()
+        self.implementation = resolve(implementation)
         if not (1 <= n_dims <= len(PRIMES) and n_levels >= 1 and 1 <= log2_table_size <= 30
                 and per_level_scale >= 1.0 and base_resolution >= 1):
             raise InputError("conf/model", "hash grid", "1..4 dims, >= 1 level, log2_table_size "
@@ -128,8 +101,6 @@ class HashEncoding(nn.Module):
         gen = torch.Generator().manual_seed(seed)
         table = (torch.rand(self.offsets[-1], n_features, generator=gen) * 2 - 1) * init_scale
         self.table = nn.Parameter(table)
-        self.use_compiled = False
-        self._compiled: Any = None
         # per-level constants [L, D]: cells per axis, and each axis' index multiplier, the
         # dense strides prod_{j<k} (R_j+1) or the hash primes
         res = torch.tensor(self.axis_resolutions, dtype=torch.int64).reshape(n_levels, n_dims)
@@ -138,7 +109,7 @@ class HashEncoding(nn.Module):
         dense = torch.tensor(self.dense)
         mult = torch.where(dense[:, None], strides,
                            torch.tensor(PRIMES[:n_dims], dtype=torch.int64))
-        self.plan = hash_cpu.Plan(res.numpy(), mult.numpy(), ~dense.numpy(), self.offsets,
+        self.plan = hash_grid.Plan(res.numpy(), mult.numpy(), ~dense.numpy(), self.offsets,
                                   self.table_size)
         # the same per kind, for the vectorised paths (buffers follow .to(device))
         for kind, sel in (("dense", True), ("hash", False)):
@@ -161,9 +132,7 @@ class HashEncoding(nn.Module):
             corner ``c`` has offset bit ``b_k = (c >> k) & 1`` along axis ``k``.
 
         Corner-major, every doubling of the corners is a broadcast over whole contiguous
-        ``[N, L_k]`` planes: on CPU ~2x faster than doubling along a trailing corner axis
-        of length 2..16 (39 040 samples, 7 hashed levels, with the copy to the bag-major
-        layout of :meth:`all_corners`: 32 -> 16 ms at 2 threads, 60 -> 25 ms at one).
+        ``[N, L_k]`` planes.
         """
         res = getattr(self, f"{kind}_res").t()[:, None, :]                # [D, 1, Lk]
         mult = getattr(self, f"{kind}_mult").t()[:, None, :]
@@ -203,26 +172,15 @@ class HashEncoding(nn.Module):
         return idx, w
 
     def forward(self, u: Tensor) -> Tensor:
-        """``u [N, D] -> [N, L * F]`` (level-major: level ``l`` at ``[:, l F:(l + 1) F]``).
-
-        On a CPU with numba the compiled loops of :mod:`baselines.hash_cpu` do it all
-        (unless ``use_compiled``). With ``use_compiled`` the corner indices and weights
-        come from a ``torch.compile``d version of :meth:`all_corners` (one fused loop
-        instead of ~40 tensor ops); the gather (``embedding_bag``) and its scatter-add
-        backward stay eager.
-        """
-        u = u.float()
-        if not self.use_compiled:
-            fused = hash_cpu.encode(self.table, u, self.plan)
-            if fused is not None:
-                return fused
-        fn = self.all_corners
-        if self.use_compiled:
-            if self._compiled is None:
-                self._compiled = torch.compile(self.all_corners)
-            fn = self._compiled
-        idx, w = fn(u)
-        feat = _WeightedGather.apply(self.table, idx.flatten(0, 1), w.flatten(0, 1))
+        """``u [N, D] -> [N, L * F]`` (level-major: level ``l`` at ``[:, l F:(l + 1) F]``):
+        ``e_l = sum_c w_c F[idx_c]`` over the 16 corners of :meth:`all_corners`, one
+        ``embedding_bag``; or the compiled loops where ``implementation`` chooses them."""
+        u = u.detach().float()         # the table's gradient only (module docstring)
+        if use_kernel(self.implementation, hash_grid.unsupported(self.table, u, self.plan)):
+            return hash_grid.encode(self.table, u, self.plan)
+        idx, w = self.all_corners(u)
+        feat = F.embedding_bag(idx.flatten(0, 1), self.table, mode="sum",
+                               per_sample_weights=w.flatten(0, 1).to(self.table.dtype))
         return feat.reshape(u.shape[0], self.n_levels * self.n_features)
 
 
@@ -267,8 +225,7 @@ class NGPField(Field):
             ``[-1, 1]`` coordinates, module docstring; 1: space mapped to the grid's box).
         anneal_steps: the cylinder's density mask grows from 0 to 1 over these steps
             (0: none).
-        compile: run the encoder's index computation through ``torch.compile`` (on a
-            CPU this replaces the compiled loops of :mod:`baselines.hash_cpu`).
+        implementation: the encoding's (:mod:`eventrecon.kernels`).
         seed: initialisation seed (table and MLPs).
 
     >>> f = NGPField(log2_table_size=12)
@@ -280,12 +237,12 @@ class NGPField(Field):
                  base_resolution: int = 8, per_level_scale: float = 2.0,
                  init_scale: float = 1e-4, density_hidden: int = 16, geo_features: int = 10,
                  colour_hidden: int = 64, colour_layers: int = 2, space_scale: float = 2.0,
-                 anneal_steps: int = 10000, compile: bool = False, seed: int = 0):
+                 anneal_steps: int = 10000, implementation: str = "auto", seed: int = 0):
         super().__init__()
         self.encoding = HashEncoding(4, n_levels, n_features, log2_table_size,
                                      base_resolution, per_level_scale, init_scale, seed,
-                                     axis_scale=(space_scale,) * 3 + (1.0,))
-        self.encoding.use_compiled = compile
+                                     axis_scale=(space_scale,) * 3 + (1.0,),
+                                     implementation=implementation)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             self.decoder = NGPDecoder(n_levels * n_features, density_hidden, geo_features,

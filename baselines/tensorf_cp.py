@@ -23,9 +23,9 @@ from collections.abc import Sequence
 
 from torch import Tensor
 
-from baselines.cp_fused import cp_rank_sum
-from baselines.factorised import FEATURES, FactorisedField
+from baselines.factorised import FactorisedField
 from baselines.schedules import GrowthPlan
+from eventrecon.kernels import factor_grids
 
 
 class TensoRFCPField(FactorisedField):
@@ -37,6 +37,7 @@ class TensoRFCPField(FactorisedField):
         n_stages, growth_steps: the growth (:class:`~baselines.schedules.GrowthPlan`).
         init_gain: lines start as ``N(0, (init_gain / R)²)``.
         seed: initialisation seed.
+        implementation: the rank sum's (:mod:`eventrecon.kernels`).
 
     >>> import torch
     >>> f = TensoRFCPField(rank=2, resolution_init=(4, 4, 4, 4), resolution_final=(8, 8, 8, 6))
@@ -47,10 +48,12 @@ class TensoRFCPField(FactorisedField):
 
     def __init__(self, rank: int = 50, resolution_init: Sequence[int] = (16, 16, 16, 16),
                  resolution_final: Sequence[int] = (500, 500, 500, 24), n_stages: int = 10,
-                 growth_steps: int = 10000, init_gain: float = 1.0, seed: int = 0):
+                 growth_steps: int = 10000, init_gain: float = 1.0, seed: int = 0,
+                 implementation: str = "auto"):
         plan = GrowthPlan(tuple(resolution_init), tuple(resolution_final), n_stages,
                           growth_steps)
-        super().__init__([(0,), (1,), (2,), (3,)], [False] * 4, rank, plan, init_gain, seed)
+        super().__init__([(0,), (1,), (2,), (3,)], [False] * 4, rank, plan, init_gain, seed,
+                         implementation)
 
     def shapes(self, resolution: Sequence[int]) -> list[tuple[int, ...]]:
         """One line per axis: ``[(N_x,), (N_y,), (N_z,), (N_t,)]``."""
@@ -64,9 +67,11 @@ class TensoRFCPField(FactorisedField):
         """``v_x · v_y · v_z · v_t`` per channel."""
         return samples[0] * samples[1] * samples[2] * samples[3]
 
-    def rank_sum(self, coords: Tensor, features: int = FEATURES) -> Tensor:
-        """On a CPU one compiled pass over the four lines (:mod:`baselines.cp_fused`: the
-        same gradients to the bit, the rank sum to rounding); line by line elsewhere."""
-        fused = cp_rank_sum(self.grids.leading(self.channels(features)), coords,
-                            self.grids.align_corners, self.grids.padding, self.rank)
-        return super().rank_sum(coords, features) if fused is None else fused
+    def kernel_unsupported(self, factors: list[Tensor], coords: Tensor) -> str | None:
+        return factor_grids.cp_unsupported(factors, coords, self.grids.align_corners)
+
+    def kernel(self, factors: list[Tensor], coords: Tensor) -> Tensor:
+        """One compiled pass over the four lines (:func:`~eventrecon.kernels.factor_grids.
+        cp_rank_sum`)."""
+        return factor_grids.cp_rank_sum(factors, coords, self.grids.align_corners,
+                                        self.grids.padding, self.rank)

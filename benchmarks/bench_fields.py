@@ -1,7 +1,8 @@
 """Throughput of one bare field step (forward + backward + AdamW step) per backbone.
 
     python -m benchmarks fields                            # trainer=cpu sizes, 2 threads
-    python -m benchmarks fields --sizing paper --compile --threads 1 --out bench.json
+    python -m benchmarks fields --sizing paper --threads 1 --out bench.json
+    python -m benchmarks fields --only ngp ngp_torch       # the hash grid's kernel against torch
 
 Each backbone is built from its config exactly as a run builds it (``conf/model/*.yaml``
 with ``--sizing cpu``: the ``trainer=cpu`` sizes of ``conf/sizing/cpu_<model>.yaml``;
@@ -17,9 +18,14 @@ by explicit corner gathers, :func:`baselines.grids.sample_grid_reference`, with 
 factor's own ``align_corners`` and padding) and logs the speed-up and the largest
 difference of the two forward outputs (a check that the reference is the same
 function). The naive versions run on ``--naive-n`` samples (default ``--n``).
-``ngp_compiled`` (``--compile``, ``model.compile=true``) also reports its ratio to eager
-NGP. Medians over ``--reps`` timed steps after 2 warm-up steps; the first step is
-reported separately (it includes compilation).
+
+Each grid backbone runs twice: with its config's ``implementation`` (``auto``: the
+compiled CPU kernel of :mod:`eventrecon.kernels` where it applies) and as
+``<backbone>_torch`` (``model.implementation=torch``: the PyTorch reference), which also
+reports ``auto_vs_torch``, the default's samples per second over the reference's (the
+kernel's gain on this flow). Medians over ``--reps`` timed steps after 2 warm-up steps;
+the first step is reported separately (it includes compilation, or loading the kernels'
+cache).
 """
 
 from __future__ import annotations
@@ -37,7 +43,7 @@ from hydra import compose, initialize_config_dir
 from torch import Tensor
 
 from baselines import NGPField, hash_encode_reference
-from baselines.factorised import FEATURES, FactorisedField
+from baselines.factorised import FactorisedField
 from baselines.grids import sample_grid_reference
 from eventrecon import build
 from eventrecon.fields.base import Field
@@ -50,12 +56,16 @@ CONF = str(Path(__file__).resolve().parents[1] / "conf")
 #: name -> config overrides of the backbone.
 BACKBONES: dict[str, list[str]] = {
     "ngp": ["model=ngp"],
-    "ngp_compiled": ["model=ngp", "model.compile=true"],
+    "ngp_torch": ["model=ngp", "model.implementation=torch"],
     "tensorf_cp": ["model=tensorf_cp", "model.n_stages=1"],
+    "tensorf_cp_torch": ["model=tensorf_cp", "model.n_stages=1", "model.implementation=torch"],
     "hexplane": ["model=hexplane"],
+    "hexplane_torch": ["model=hexplane", "model.implementation=torch"],
     "nerf": ["model=nerf", "model.anneal_steps=0"],
 }
 NAIVE = ("ngp", "tensorf_cp", "hexplane")
+#: Suffix of a backbone's PyTorch-reference variant (``model.implementation=torch``).
+TORCH = "_torch"
 
 
 def build_backbone(overrides: list[str], sizing: str) -> tuple[Field, float]:
@@ -79,8 +89,7 @@ def make_naive(field: Field) -> Field:
         grids.forward = lambda c, k=None: [  # type: ignore[method-assign]   # [N, C] each
             sample_grid_reference(f, c[:, list(ax)], ac, grids.padding).t()
             for f, ax, ac in zip(grids.leading(k), grids.axes, grids.align_corners)]
-        # factor by factor, also where the field fuses them (TensoRF-CP's lines on a CPU)
-        field.rank_sum = lambda c, f=FEATURES: FactorisedField.rank_sum(field, c, f)  # type: ignore[method-assign]
+        field.implementation = "torch"   # factor by factor: the sampling above, not a kernel
     else:
         raise TypeError(f"no naive version of {type(field).__name__}")
     return field
@@ -141,15 +150,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--sizing", choices=("cpu", "paper"), default="cpu",
                     help="cpu: the trainer=cpu sizes; paper: the configs' own (authors')")
-    ap.add_argument("--compile", action="store_true", help="also time NGP with torch.compile")
     ap.add_argument("--only", nargs="*", choices=list(BACKBONES), help="subset of backbones")
     ap.add_argument("--out", help="write the results as JSON")
     args = ap.parse_args(argv if argv is not None else [])
     torch.set_num_threads(args.threads)
     rows: list[dict] = []
     for name, over in BACKBONES.items():
-        if (args.only and name not in args.only) or (name == "ngp_compiled" and not args.compile
-                                                     and not args.only):
+        if args.only and name not in args.only:
             continue
         field, lr = build_backbone(over, args.sizing)
         sec, first = time_steps(field, lr, args.n, args.reps)
@@ -162,17 +169,19 @@ def main(argv: list[str] | None = None) -> None:
             nsec, _ = time_steps(naive, lr, naive_n, max(1, args.reps // 2), 1)
             row["naive_samples_per_s"] = naive_n / nsec
             row["speedup"] = row["samples_per_s"] / row["naive_samples_per_s"]
-        eager = next((r for r in rows if r["backbone"] == "ngp"), None)
-        if name == "ngp_compiled" and eager is not None:
-            row["vs_eager"] = row["samples_per_s"] / eager["samples_per_s"]
+        auto = next((r for r in rows if name.endswith(TORCH)
+                     and r["backbone"] == name[:-len(TORCH)]), None)
+        if auto is not None:
+            row["auto_vs_torch"] = auto["samples_per_s"] / row["samples_per_s"]
         rows.append(row)
-        log.info(f"{name:13s} {row['samples_per_s'] / 1e3:9.1f} k samples/s  "
+        log.info(f"{name:16s} {row['samples_per_s'] / 1e3:9.1f} k samples/s  "
                  f"(step {sec * 1e3:7.1f} ms, first {first:6.2f} s, "
                  f"{row['params'] / 1e6:.2f} M params)"
                  + (f"  naive {row['naive_samples_per_s'] / 1e3:7.1f} k/s  x{row['speedup']:.1f}"
                     f"  (max |fast - naive| {row['naive_max_diff']:.1e})"
                     if "speedup" in row else "")
-                 + (f"  x{row['vs_eager']:.2f} vs eager" if "vs_eager" in row else ""))
+                 + (f"  auto x{row['auto_vs_torch']:.2f} vs torch"
+                    if "auto_vs_torch" in row else ""))
     meta = {"threads": args.threads, "n": args.n, "sizing": args.sizing,
             "torch": torch.__version__, "loadavg": os.getloadavg()}
     log.info(f"# {meta}")

@@ -2,6 +2,7 @@
 
     python -m benchmarks step                      # every backbone, trainer=cpu, 2 threads
     python -m benchmarks step --only ngp --profile # where the time of one step goes
+    python -m benchmarks step --only hexplane hexplane_torch   # the kernel against torch
 
 A *real* step is what :class:`eventrecon.module.EventNeRFModule` does each iteration:
 draw the batch (window, balanced rays, event lookups, reference frame), render every
@@ -17,8 +18,12 @@ missing). Medians over ``--reps`` steps after ``--warmup``.
 
 ``--grids`` sets the size of a growing field's grids (TensoRF-CP's lines): ``final``
 (default), the size it trains at from the first few percent of a run on (``scale=cpu``:
-from step ~67 of 1000), or ``initial``, the fresh field's (16 vertices; before session
-63 the only choice, 14.3–16.6 against 16.0–21.1 ms per TensoRF-CP step at the final 500).
+from step ~67 of 1000), or ``initial``, the fresh field's (16 vertices).
+
+Each grid backbone also runs as ``<backbone>_torch`` (``model.implementation=torch``:
+the PyTorch reference everywhere, :mod:`eventrecon.kernels`) beside its default
+(``auto``: the compiled CPU kernel where it applies), so that the kernel's share of the
+real step can be read off the two rows.
 
 ``--skip`` sets ``render.skip`` (default ``none``: every sample of a ray that hits the
 cylinder reaches the field, as the figures in ``docs/results/`` were taken). With
@@ -47,14 +52,17 @@ from eventrecon.module import step_generator
 log = logging.getLogger("benchmarks.step")
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
 
-#: name -> config overrides (the CPU presets; ``nerf_paper`` is the paper's 8×256 MLP).
+#: name -> config overrides (the CPU presets; ``nerf_paper`` is the paper's 8×256 MLP;
+#: ``<backbone>_torch`` the backbone with ``model.implementation=torch``).
 BACKBONES: dict[str, list[str]] = {
     "nerf": ["model=nerf"],
     "nerf_paper": ["model=nerf", "model.depth=8", "model.width=256", "model.skip=4"],
     "ngp": ["model=ngp"],
-    "ngp_compiled": ["model=ngp", "model.compile=true"],
+    "ngp_torch": ["model=ngp", "model.implementation=torch"],
     "tensorf_cp": ["model=tensorf_cp"],
+    "tensorf_cp_torch": ["model=tensorf_cp", "model.implementation=torch"],
     "hexplane": ["model=hexplane"],
+    "hexplane_torch": ["model=hexplane", "model.implementation=torch"],
 }
 
 
@@ -159,7 +167,7 @@ def main(argv: list[str] | None = None) -> None:
             continue
         r = measure(over, args.reps, args.warmup, args.data_dir, args.profile, args.skip,
                     args.grids)
-        log.info("%-13s real %8.1f k samples/s (%6.1f ms/step)  bare %8.1f k samples/s "
+        log.info("%-16s real %8.1f k samples/s (%6.1f ms/step)  bare %8.1f k samples/s "
                  "(%6.1f ms)  real/bare %.2f  [%d samples/step, %d threads, skip %s, grids "
                  "%s]", name,
                  r["real_samples_per_s"] / 1e3, r["real_s"] * 1e3,

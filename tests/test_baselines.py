@@ -15,9 +15,11 @@ from torch import Tensor, nn
 from baselines import CylinderAnneal, GrowthPlan, HexPlaneField, NGPField, TensoRFCPField
 from baselines.grids import (
     box_normalize,
+    channels_last,
     geometric_resolutions,
     sample_grid,
     sample_grid_reference,
+    sample_points,
     upsample_grid,
 )
 from baselines.heads import NGPDecoder, sh4_at_zero_direction
@@ -54,21 +56,10 @@ def _points(n: int, seed: int) -> tuple[Tensor, Tensor]:
 
 
 # ---------------------------------------------------------------- grid helpers
-@pytest.fixture(params=["compiled", "grid_sample"])
-def sampler(request, monkeypatch):
-    """Both paths of ``sample_grid``: the CPU's compiled loops, and ``grid_sample`` (the
-    GPU's, and the CPU's without numba) with the compiled path switched off."""
-    if request.param == "grid_sample":
-        import baselines.grids as grids
-
-        monkeypatch.setattr(grids, "interpolate", lambda *a, **k: None)
-    return request.param
-
-
 @pytest.mark.parametrize("shape", [(3, 7), (3, 5, 9), (2, 4, 5, 6)])
 @pytest.mark.parametrize("align,padding", [(True, "border"), (False, "zeros"),
                                            (True, "zeros"), (False, "border")])
-def test_sample_grid_matches_explicit_gather(shape, align, padding, sampler):
+def test_sample_grid_matches_explicit_gather(shape, align, padding):
     g = torch.Generator().manual_seed(0)
     grid = torch.randn(shape, generator=g)
     coords = torch.rand(500, len(shape) - 1, generator=g) * 2.2 - 1.1  # some outside
@@ -79,83 +70,28 @@ def test_sample_grid_matches_explicit_gather(shape, align, padding, sampler):
     assert (got - ref).abs().max().item() <= 1e-5
 
 
-@pytest.mark.parametrize("shape", [(3, 40), (3, 17, 19), (2, 6, 5, 7)])
-def test_sample_grid_split_over_threads_gives_the_same_values_and_summed_gradients(shape):
-    """Where ``grid_sample`` serves (a GPU, a grid of four axes, coordinates with a
-    gradient, no numba), on
-    2 threads the points go to it as 2 batch entries (the last padded): values bit for bit
-    those of one entry, the grid's gradient the same up to the rounding of its two partial
-    sums; both match the explicit gather."""
-    import baselines.grids as grids
-
-    def sample_grid(grid, coords, align, padding):          # the grid_sample path itself
-        k = grids.cpu_batches(coords.shape[0], grid)
-        return grids.unsplit(grids.sample_grid_split(grid, coords, k, align, padding),
-                             coords.shape[0])
-
-    g = torch.Generator().manual_seed(1)
-    n = 3 * grids.MIN_SPLIT_POINTS + 5                   # odd: the second entry is padded
-    grid = torch.randn(shape, generator=g, requires_grad=True)
-    coords = torch.rand(n, len(shape) - 1, generator=g) * 2.2 - 1.1
-    weights = torch.randn(shape[0], n, generator=g)
-    results = []
-    for threads in (1, 2):
-        with torch_threads(threads):
-            assert grids.cpu_batches(n, grid) == threads
-            grid.grad = None
-            out = sample_grid(grid, coords, False, "zeros")
-            (out * weights).sum().backward()
-            results.append((out.detach(), grid.grad.clone()))
-    (one, grad_one), (two, grad_two) = results
-    assert two.shape == (shape[0], n) and torch.equal(one, two)
-    assert torch.allclose(grad_one, grad_two, rtol=1e-5, atol=1e-4)
-    ref = sample_grid_reference(grid.detach(), coords, False, "zeros")
-    assert (two - ref).abs().max().item() <= 1e-5
-    with torch_threads(2):
-        assert grids.cpu_batches(grids.MIN_SPLIT_POINTS - 1, grid) == 1      # too few points
-        assert grids.cpu_batches(10 ** 6, grid.to("meta")) == 1              # not a CPU
-        big = torch.zeros(1, 300, 300)                 # 90 000 cells: its buffer per entry
-        assert grids.cpu_batches(11_249, big) == 1 and grids.cpu_batches(11_250, big) == 2
-
-
-@pytest.mark.parametrize("kind", ["tensorf_cp", "hexplane"])
-def test_factorised_field_on_split_grid_sample_equals_the_one_thread_field(kind, monkeypatch):
-    """With ``grid_sample`` serving the factors (the compiled interpolation switched off,
-    as on a machine without numba), on 2 threads their points are split into ``k`` = 2
-    entries (the second padded): the field equals the one-thread field, value for value,
-    and its gradients agree up to the rounding of the summed entries."""
-    import baselines.grids as grids
-    import baselines.tensorf_cp as tensorf_cp
-
-    monkeypatch.setattr(grids, "interpolate", lambda *a, **k: None)
-    monkeypatch.setattr(tensorf_cp, "cp_rank_sum", lambda *a, **k: None)   # the fused lines
-    field = _small(kind)
-    n = 2 * grids.MIN_SPLIT_POINTS + 3
-    xyz, t = _points(n, 4)
-    w = torch.randn(n, 4, generator=torch.Generator().manual_seed(5))
-    results = []
-    for threads in (1, 2):
-        with torch_threads(threads):
-            assert min(grids.cpu_batches(n, f) for f in field.grids.factors) == threads
-            field.zero_grad(set_to_none=True)
-            sigma, rgb = field(xyz, t)
-            (torch.cat([sigma[:, None], rgb], 1) * w).sum().backward()
-            results.append((sigma.detach(), rgb.detach(),
-                            [p.grad.clone() for p in field.grids.factors]))
-    (s1, c1, g1), (s2, c2, g2) = results
-    assert s2.shape == (n,) and c2.shape == (n, 3)
-    assert torch.equal(s1, s2) and torch.equal(c1, c2)
-    for a, b in zip(g1, g2):
-        assert torch.allclose(a, b, rtol=1e-5, atol=1e-5)
-
-
-def test_sample_conventions_known_values(sampler):
+def test_sample_conventions_known_values():
     line = torch.tensor([[2.0, 4.0]])  # R = 2
     c = torch.tensor([[-1.0], [-0.5], [0.5], [1.0]])
     # align_corners=True: -1 and +1 on the two vertices
     assert sample_grid(line, c, True, "border").flatten().tolist() == [2.0, 2.5, 3.5, 4.0]
     # align_corners=False: vertices at -0.5 and +0.5, zero beyond the outer cell edges
     assert sample_grid(line, c, False, "zeros").flatten().tolist() == [1.0, 2.0, 4.0, 2.0]
+
+
+def test_sample_points_reads_the_named_columns_as_the_gathered_coordinates():
+    """``axes`` reads the grid's coordinates off the columns of ``[N, D]``: the same values
+    and the same grid gradient as a gathered copy, to the bit."""
+    g = torch.Generator().manual_seed(7)
+    grid = channels_last(torch.randn(8, 9, 5, generator=g)).requires_grad_(True)
+    coords = torch.rand(3000, 4, generator=g) * 2.2 - 1.1
+    w = torch.randn(3000, 8, generator=g)
+    outs = [sample_points(grid, coords, True, "zeros", (3, 1)),
+            sample_points(grid, coords[:, [3, 1]], True, "zeros")]
+    grads = [torch.autograd.grad((o * w).sum(), grid)[0] for o in outs]
+    assert torch.equal(outs[0], outs[1]) and torch.equal(grads[0], grads[1])
+    ref = sample_grid_reference(grid.detach(), coords[:, [3, 1]], True, "zeros").t()
+    assert (outs[0] - ref).abs().max().item() <= 1e-5
 
 
 def test_box_normalisation_maps_the_cylinder_box_to_the_unit_cube():
@@ -368,17 +304,13 @@ def test_ngp_density_alone_is_the_forward_density_bit_for_bit():
 
 
 @pytest.mark.parametrize("kind", ["tensorf_cp", "hexplane"])
-@pytest.mark.parametrize("fused", [True, False])
-def test_factorised_density_alone_reads_only_the_density_channels(kind, fused, monkeypatch):
+@pytest.mark.parametrize("implementation", ["auto", "torch"])
+def test_factorised_density_alone_reads_only_the_density_channels(kind, implementation):
     """The factorised fields' ``density_only`` samples only the density's ``R`` channels
     of each factor (the colours' made NaN here cannot reach it) and gives the forward
-    pass's density to the bit, with TensoRF-CP's fused lines and line by line."""
-    import baselines.tensorf_cp as tensorf_cp
-
-    if not fused:
-        monkeypatch.setattr(tensorf_cp, "cp_rank_sum", lambda *a, **k: None)
+    pass's density to the bit, with the compiled rank sum (``auto``) and the reference."""
     torch.manual_seed(3)
-    f = _small(kind)
+    f = _small(kind, implementation=implementation)
     xyz, t = _points(3000, 8)
     with torch.no_grad():
         for p in f.parameters():
@@ -392,14 +324,11 @@ def test_factorised_density_alone_reads_only_the_density_channels(kind, fused, m
 
 
 @pytest.mark.parametrize("kind", ["tensorf_cp", "hexplane"])
-def test_factorised_forward_reads_its_factors_unsliced(kind, monkeypatch):
-    """The full forward pass reads the factors themselves: no slice of a factor in its
-    graph, whose backward would allocate and copy a factor-sized gradient per step
-    (HexPlane's training step 1.13× slower with it)."""
-    import baselines.tensorf_cp as tensorf_cp
-
-    monkeypatch.setattr(tensorf_cp, "cp_rank_sum", lambda *a, **k: None)   # autograd's graph
-    f = _small(kind)
+def test_factorised_forward_reads_its_factors_unsliced(kind):
+    """The reference's full forward pass reads the factors themselves: no slice of a
+    factor in its graph, whose backward would allocate and copy a factor-sized gradient
+    per step."""
+    f = _small(kind, implementation="torch")                        # autograd's graph
     xyz, t = _points(200, 9)
     sigma, rgb = f(xyz * 0.5, t)
     factors = {id(p) for p in f.grids.factors}

@@ -1,42 +1,27 @@
-"""The 4D hash encoding against a slow reference, exactness at dense levels, index safety;
-the compiled CPU loops (baselines.hash_cpu) against the eager tensor path."""
+"""The 4D hash encoding against a slow reference, exactness at dense levels, index
+safety: the PyTorch reference (``implementation="torch"``) and the default (``"auto"``:
+the compiled loops of :mod:`eventrecon.kernels.hash_grid` where they apply, asserted to
+have served). The compiled loops against the reference: ``test_kernels_hash_grid.py``."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from baselines import hash_cpu
+import eventrecon.kernels.hash_grid as hash_grid
 from baselines.ngp import PRIMES, HashEncoding, NGPField, hash_encode_reference
-from eventrecon.sim.jit import AVAILABLE, numba_threads, parts
-from eventrecon.sim.pipeline import torch_threads
 
 
-@pytest.fixture(params=["compiled", "eager"])
-def path(request, monkeypatch):
-    """Both implementations: the compiled loops (asserted to have served a call), and
-    the tensor path."""
-    if request.param == "compiled" and not AVAILABLE:
-        pytest.skip("no numba")
-    if request.param == "eager":
-        monkeypatch.setattr(hash_cpu, "encode", lambda *a, **k: None)
-        yield request.param
-        return
-    served = []
-    encode = hash_cpu.encode
-    monkeypatch.setattr(hash_cpu, "encode",
-                        lambda *a, **k: (lambda r: (served.append(r is not None), r)[1])(
-                            encode(*a, **k)))
-    yield request.param
-    assert any(served)
-
-
-def _count_calls(monkeypatch, module, name: str) -> list[int]:
-    """Count the calls of ``module.name`` (a compiled kernel called from Python)."""
+@pytest.fixture(params=["torch", "auto"])
+def implementation(request, monkeypatch):
+    """Both implementations: ``torch`` (the kernel never called) and ``auto`` (the kernel
+    asserted to have served a call)."""
     calls: list[int] = []
-    kernel = getattr(module, name)
-    monkeypatch.setattr(module, name, lambda *a: (calls.append(1), kernel(*a))[1])
-    return calls
+    encode = hash_grid.encode
+    monkeypatch.setattr(hash_grid, "encode",
+                        lambda *a, **k: (calls.append(1), encode(*a, **k))[1])
+    yield request.param
+    assert bool(calls) == (request.param == "auto")
 
 
 def _random_table(enc: HashEncoding, seed: int = 0) -> None:
@@ -64,9 +49,10 @@ def test_paper_configuration_levels():
     assert enc.offsets[-1] == 9**4 + 17**4 + 6 * 2**19
 
 
-def test_matches_slow_reference(path):
+def test_matches_slow_reference(implementation):
     """Vectorised encoding == explicit loops over levels and 16 corners, to 1e-6."""
-    enc = HashEncoding(log2_table_size=16, n_levels=6, base_resolution=4, per_level_scale=1.7)
+    enc = HashEncoding(log2_table_size=16, n_levels=6, base_resolution=4, per_level_scale=1.7,
+                       implementation=implementation)
     _random_table(enc)
     u = _edge_points(3000)
     got, ref = enc(u), hash_encode_reference(enc, u)
@@ -75,18 +61,21 @@ def test_matches_slow_reference(path):
     assert (got - ref).abs().max().item() <= 1e-6
 
 
-def test_a_dense_level_of_exactly_table_size_rows_matches_the_reference(path):
+def test_a_dense_level_of_exactly_table_size_rows_matches_the_reference(implementation):
     """``(R+1)^4 = T``: the level is dense (rows summed, not hashed), on both paths."""
-    enc = HashEncoding(log2_table_size=8, n_levels=3, base_resolution=3, per_level_scale=2.0)
+    enc = HashEncoding(log2_table_size=8, n_levels=3, base_resolution=3, per_level_scale=2.0,
+                       implementation=implementation)
     assert enc.dense == [True, False, False] and 4**4 == enc.table_size
     _random_table(enc)
     u = _edge_points(2000, seed=11)
     assert (enc(u) - hash_encode_reference(enc, u)).abs().max().item() <= 1e-6
 
 
-def test_gradient_matches_reference(path):
-    """The hand-written scatter-add backward equals autograd through the reference."""
-    enc = HashEncoding(log2_table_size=12, n_levels=4, base_resolution=3)
+def test_gradient_matches_reference(implementation):
+    """The table gradient (the kernel's scatter, or autograd through ``embedding_bag``)
+    equals autograd through the slow reference."""
+    enc = HashEncoding(log2_table_size=12, n_levels=4, base_resolution=3,
+                       implementation=implementation)
     _random_table(enc)
     u = _edge_points(500)
     wts = torch.randn(500, 8, generator=torch.Generator().manual_seed(2))
@@ -95,8 +84,9 @@ def test_gradient_matches_reference(path):
     assert (g1 - g2).abs().max().item() <= 1e-5
 
 
-def test_dense_vertices_return_stored_features_exactly(path):
-    enc = HashEncoding(log2_table_size=17, n_levels=2, base_resolution=8)  # R = 8, 16 dense
+def test_dense_vertices_return_stored_features_exactly(implementation):
+    enc = HashEncoding(log2_table_size=17, n_levels=2, base_resolution=8,   # R = 8, 16 dense
+                       implementation=implementation)
     _random_table(enc)
     g = torch.Generator().manual_seed(3)
     for lvl, r in enumerate(enc.resolutions):
@@ -173,69 +163,3 @@ def test_field_at_segment_and_box_edges_is_finite_and_clamped():
     # outside the box the field is the boundary value (coordinates clamped)
     assert torch.equal(sigma[0], sigma[1])
     assert torch.equal(sigma[2], f(xyz[3:], torch.ones(1, 1))[0][0])
-
-
-@pytest.mark.slow
-def test_compiled_encoder_matches_eager():
-    enc = HashEncoding(log2_table_size=14, n_levels=4)
-    _random_table(enc)
-    u = _edge_points(1000)
-    eager = enc(u)
-    enc.use_compiled = True
-    assert (enc(u) - eager).abs().max().item() <= 1e-6
-
-
-def _paper_cpu_encoding() -> HashEncoding:
-    """The CPU NGP's encoding (2^17 rows, space at twice the cells), a random table."""
-    enc = HashEncoding(4, 8, 2, 17, 8, 2.0, 1e-4, 0, axis_scale=(2.0, 2.0, 2.0, 1.0))
-    _random_table(enc)
-    return enc
-
-
-@pytest.mark.skipif(not AVAILABLE, reason="no numba")
-def test_compiled_loops_equal_the_eager_path_values_and_gradient(monkeypatch):
-    """At the CPU NGP's sizes (a dense level and seven hashed ones), on points at and
-    beyond the box: the same values to 2e-7, the same table gradient to 1e-6 relative."""
-    enc = _paper_cpu_encoding()
-    assert enc.dense[0] and not any(enc.dense[1:])
-    u = _edge_points(6000, seed=5)
-    wts = torch.randn(6000, 16, generator=torch.Generator().manual_seed(6))
-    out, (g,) = enc(u), torch.autograd.grad((enc(u) * wts).sum(), enc.table)
-    monkeypatch.setattr(hash_cpu, "encode", lambda *a, **k: None)
-    ref, (g_ref,) = enc(u), torch.autograd.grad((enc(u) * wts).sum(), enc.table)
-    assert (out - ref).abs().max().item() <= 2e-7
-    assert (g - g_ref).abs().max().item() <= 1e-6 * g_ref.abs().max().item()
-    assert hash_cpu.supported(enc.table, u, enc.plan)
-    assert not hash_cpu.supported(enc.table, u.double(), enc.plan)
-    assert not hash_cpu.supported(enc.table[:-1], u, enc.plan)         # not the plan's rows
-
-
-@pytest.mark.skipif(not AVAILABLE, reason="no numba")
-def test_compiled_loops_a_nan_coordinate_reads_nan_and_sends_nothing():
-    enc = _paper_cpu_encoding()
-    u = _edge_points(100, seed=7)
-    u[3, 2] = float("nan")
-    out = enc(u)
-    assert out[3].isnan().all() and torch.isfinite(out[torch.arange(100) != 3]).all()
-    (g,) = torch.autograd.grad(out[torch.arange(100) != 3].sum(), enc.table)
-    keep = torch.arange(100) != 3
-    (g_ref,) = torch.autograd.grad(enc(u[keep]).sum(), enc.table)
-    assert torch.equal(g, g_ref)
-
-
-@pytest.mark.skipif(numba_threads() < 2, reason="numba has one thread here")
-def test_compiled_loops_give_the_same_bits_on_one_and_two_threads(monkeypatch):
-    """Split between threads (points in the forward, levels in the gradient, which own
-    disjoint table rows) the sums run in the same order: the same bits."""
-    split = [_count_calls(monkeypatch, hash_cpu, k) for k in ("_encode_parts", "_scatter_parts")]
-    enc = _paper_cpu_encoding()
-    u = _edge_points(3 * 4096, seed=8)
-    wts = torch.randn(u.shape[0], 16, generator=torch.Generator().manual_seed(9))
-    runs = []
-    for threads in (1, 2):
-        with torch_threads(threads):
-            assert parts(u.shape[0]) == threads
-            out = enc(u)
-            runs.append((out.detach(), torch.autograd.grad((out * wts).sum(), enc.table)[0]))
-    assert torch.equal(runs[0][0], runs[1][0]) and torch.equal(runs[0][1], runs[1][1])
-    assert [len(c) for c in split] == [1, 1]                        # the two-thread run split
