@@ -10,8 +10,9 @@ ARGS   ?=
 
 install: $(STAMP)
 
-# torch is installed first and pinned (the CPU wheel); then the project and its
-# test extras; lpips last with --no-deps (it would pull torchvision).
+# torch is installed first and pinned here (the CPU wheel; the package itself asks only
+# torch>=2.4); then the project and its test extras; lpips last with --no-deps (it would
+# pull torchvision).
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip

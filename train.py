@@ -41,14 +41,12 @@ def _pick_trainer_preset(argv: list[str]) -> list[str]:
 
 @hydra.main(config_path="conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float | None:
-    from eventrecon.allocator import retain_freed_memory
     from eventrecon.errors import InputError
     from eventrecon.module import NonFiniteLossError
     from eventrecon.records import finished_metrics
     from eventrecon.runner import run
 
     _one_log_stream()
-    retain_freed_memory()  # each job's process keeps freed blocks (eventrecon.allocator)
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN

@@ -8,8 +8,8 @@
     python -m benchmarks compile              # torch.compile / bf16 vs eager (NeRF MLP)
 
 ``make bench ARGS="step --profile"`` passes ARGS here. NAME is the part after ``bench_``
-of a module in this folder. Benchmarks that read finished runs (``NEEDS_RUNS``: ``heldout``,
-``skip``) run only when named.
+of a module in this folder. Benchmarks that read finished runs (``NEEDS_RUNS``: ``heldout``)
+run only when named.
 """
 
 from __future__ import annotations
@@ -21,7 +21,6 @@ import sys
 from pathlib import Path
 
 import eventrecon
-from eventrecon.allocator import retain_freed_memory
 from eventrecon.errors import InputError
 
 log = logging.getLogger("benchmarks")
@@ -56,7 +55,6 @@ def main(argv: list[str] | None = None) -> int:
     warning = foreign_package(Path(__file__).parent, Path(eventrecon.__file__))
     if warning:
         log.warning(warning)
-    retain_freed_memory()              # as train.py and the CLIs do (eventrecon.allocator)
     names = available()
     if argv and argv[0] in ("-h", "--help"):
         log.info("%s\nbenchmarks: %s", __doc__, ", ".join(names))

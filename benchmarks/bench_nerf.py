@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from eventrecon.fields.nerf import NeRFField
-from eventrecon.render.volume import Renderer
+from eventrecon.render.volume import VolumeRenderer
 
 log = logging.getLogger("benchmarks.nerf")
 
@@ -117,7 +117,7 @@ def time_renderer(field: nn.Module, rays: int, n_coarse: int, n_fine: int, steps
                   seed: int) -> float:
     """Median seconds of a renderer training step on ``rays`` rays through the cylinder."""
     gen = torch.Generator().manual_seed(seed)
-    renderer = Renderer(n_coarse, n_fine)
+    renderer = VolumeRenderer(n_coarse, n_fine)
     o = torch.tensor([[-2.0, -0.25, 0.0]]).expand(rays, 3).clone()
     d = torch.nn.functional.normalize(
         torch.tensor([[1.0, 0.0, 0.0]]) + 0.1 * torch.randn(rays, 3, generator=gen), dim=-1)
@@ -127,7 +127,7 @@ def time_renderer(field: nn.Module, rays: int, n_coarse: int, n_fine: int, steps
     times = []
     for i in range(steps + 1):
         t0 = time.perf_counter()
-        levels = renderer(field, o, d, t, bg, perturb=True, gen=gen)
+        levels = renderer.render_rays(field, o, d, t, bg, perturb=True, gen=gen)
         loss = sum(((lv["rgb"] - 0.3) ** 2).mean() for lv in levels)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--renderer", action="store_true",
-                   help="also time Renderer(32, 32) + field on 256 rays x 3 times")
+                   help="also time VolumeRenderer(32, 32) + field on 256 rays x 3 times")
     args = p.parse_args(argv if argv is not None else [])
     torch.set_num_threads(args.threads)
     arch = dict(depth=args.depth, width=args.width, skip=args.skip, pos_bands=14,

@@ -45,20 +45,19 @@ def test_running_every_benchmark_skips_those_that_read_finished_runs(caplog, mon
     for name in bm.available():
         module = importlib.import_module(f"benchmarks.bench_{name}")
         monkeypatch.setattr(module, "main", lambda args, name=name: ran.append(name))
-    monkeypatch.setattr(bm, "retain_freed_memory", lambda: None)
     level = logging.getLogger("eventrecon").level
     try:
         with caplog.at_level(logging.INFO, logger="benchmarks"):
             assert bm.main([]) == 0
     finally:
         logging.getLogger("eventrecon").setLevel(level)
-    assert {"heldout", "skip"} <= set(bm.available())
-    assert sorted(ran) == sorted(set(bm.available()) - {"heldout", "skip"})
-    assert "python -m benchmarks skip RUN_DIR" in caplog.text
+    assert "heldout" in set(bm.available())
+    assert sorted(ran) == sorted(set(bm.available()) - {"heldout"})
+    assert "python -m benchmarks heldout RUN_DIR" in caplog.text
 
 
 def test_a_run_folder_without_a_saved_config_is_one_error_line(caplog, tmp_path) -> None:
-    """``python -m benchmarks skip|heldout DIR`` on a folder that is not a run: one line
+    """``python -m benchmarks heldout DIR`` on a folder that is not a run: one line
     naming the missing ``.hydra/config.yaml`` and exit status 2, no traceback
     (``eventrecon.evaluate.run_config``); ``image --run`` raises the same error."""
     import logging
@@ -71,7 +70,7 @@ def test_a_run_folder_without_a_saved_config_is_one_error_line(caplog, tmp_path)
 
     level = logging.getLogger("eventrecon").level
     try:
-        for name in ("skip", "heldout"):
+        for name in ("heldout",):
             caplog.clear()
             with caplog.at_level(logging.ERROR, logger="benchmarks"):
                 assert bm.main([name, str(tmp_path)]) == 2

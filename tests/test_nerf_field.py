@@ -13,14 +13,8 @@ from torch import nn
 
 from eventrecon.errors import InputError
 from eventrecon.fields import Field, NeRFField
-from eventrecon.fields.encoding import (
-    BandAnnealing,
-    PositionalEncoding,
-    band_window,
-    encode_grouped,
-    full_precision_products,
-)
-from eventrecon.render.volume import Renderer
+from eventrecon.fields.encoding import BandAnnealing, PositionalEncoding, band_window
+from eventrecon.render.volume import VolumeRenderer
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf" / "model" / "nerf.yaml")
 
@@ -114,12 +108,9 @@ def test_a_window_of_ones_is_skipped_exactly_and_a_loaded_window_is_applied() ->
     assert not on.pos_enc._all_on and not on.time_enc._all_on
     xyz, t = torch.rand(9, 3), torch.rand(9, 1)
     assert torch.equal(on.encode(xyz, t), annealing.encode(xyz, t))
-    # the host copy the grouped features read follows the loaded buffer
-    for e in (on.pos_enc, on.time_enc):
+    for e in (on.pos_enc, on.time_enc):           # the host copy follows the loaded buffer
         assert e.weights == tuple(e.window.tolist())
     assert on.pos_enc.weights[2] == 0.0 < on.pos_enc.weights[0]
-    assert torch.equal(on.features(xyz, t), annealing.features(xyz, t))
-    assert torch.equal(on.features(xyz, t), on.encode(xyz, t)[:, on.feature_order])
 
 
 def test_band_annealing_callback_sets_every_encoding() -> None:
@@ -176,107 +167,23 @@ def test_nerf_field_is_the_authors_layers_and_initialisation() -> None:
     sigma = torch.nn.functional.softplus(f.density(h2)).squeeze(-1)
     rgb = torch.sigmoid(f.colour_out(2 * torch.relu(f.colour_hidden(f.colour_remap(h2)))))
     got = f(x, t)
-    assert torch.allclose(got[0], sigma, atol=1e-6) and torch.allclose(got[1], rgb, atol=1e-6)
+    assert torch.equal(got[0], sigma) and torch.equal(got[1], rgb)
 
 
-def _explicit_forward(f: NeRFField, xyz: torch.Tensor, t: torch.Tensor,
-                      authors_layout: bool = False):
-    """The field written out plainly: every activation ``2·ReLU`` as a multiplication, the
-    layers called as modules; on the grouped features through the gathered weights, or
-    with ``authors_layout`` on ``encode``'s features through the stored ones."""
-    relu2 = lambda x: torch.relu(x) * 2.0  # noqa: E731
-    feats = f.encode(xyz, t) if authors_layout else f.features(xyz, t)
-    h = feats
-    for i, layer in enumerate(f.layers):
-        weight = layer.weight if authors_layout else f.layer_weight(i)
-        h = relu2(nn.functional.linear(h, weight, layer.bias))
-        if i == f.skip:
-            h = torch.cat([feats, h], dim=-1)
-    sigma = nn.functional.softplus(f.density(h).squeeze(-1) + f.density_shift)
-    return sigma, torch.sigmoid(f.colour_out(relu2(f.colour_hidden(f.colour_remap(h)))))
-
-
-@pytest.mark.parametrize("autocast", [None, torch.bfloat16])
-@pytest.mark.parametrize("step", [None, 0, 300, 800, 1200, 3990])
-def test_grouped_features_are_the_authors_encoding_permuted_and_give_its_field(step,
-                                                                              autocast) -> None:
-    """``features`` holds ``encode``'s values in ``feature_order`` (bands all on, and in
-    annealing: all off; the first band of each encoding partly on, two runs of columns
-    apart; the first position band exactly on beside a partial time band; one band on,
-    one half, the rest off; every band but a partial last one on);
-    in fp32, under bf16 autocast, differentiable in ``xyz``,
-    and with reduced-precision fp32 products switched on, where the angles come from a
-    gather instead of a product); the forward pass through the gathered weight columns
-    is the authors'-layout network written out (``encode`` through the stored weights,
-    skip included) up to the rounding of sums taken in another order: values and
-    gradients, the parameters' and ``xyz``'s, in fp32 and under bf16 autocast."""
-    torch.manual_seed(5)
-    f = NeRFField(depth=4, width=32, skip=1, pos_bands=5, time_bands=3, remap_width=32,
-                  colour_width=16, anneal_steps=0 if step is None else 4000)
-    if step is not None:
-        f.set_progress(step)
-        on = [(e.window > 0).sum().item() for e in (f.pos_enc, f.time_enc)]
-        assert on == {0: [0, 0], 300: [1, 1], 800: [1, 1], 1200: [2, 1], 3990: [5, 3]}[step]
-        assert step != 800 or f.pos_enc.weights[0] == 1.0 > f.time_enc.weights[0]
-        assert step in (0, 800) or ((f.pos_enc.window > 0) & (f.pos_enc.window < 1)).any()
-    xyz, t = torch.rand(301, 3) * 4 - 2, torch.rand(301, 1)
-    enc = f.encode(xyz, t)
-    assert sorted(f.feature_order.tolist()) == list(range(enc.shape[1]))
-    if step == 0:                                            # nothing but the raw inputs
-        assert torch.equal(f.features(xyz, t)[:, 4:], torch.zeros(301, 2 * 5 * 3 + 2 * 3))
-    assert torch.equal(f.features(xyz, t), enc[:, f.feature_order])
-    with torch.autocast("cpu", dtype=torch.bfloat16):      # autocast's cast, made ahead
-        assert torch.equal(f.features(xyz, t), enc[:, f.feature_order].bfloat16())
-    precision = torch.get_float32_matmul_precision()
-    try:
-        torch.set_float32_matmul_precision("medium")        # products may run in bf16
-        assert not full_precision_products()
-        assert torch.equal(f.features(xyz, t), enc[:, f.feature_order])
-    finally:
-        torch.set_float32_matmul_precision(precision)
-    assert full_precision_products()
-    xyz.requires_grad_(True)                                  # the differentiable path
-    assert torch.equal(f.features(xyz, t), enc[:, f.feature_order])
-
-    results = []
-    for authors in (False, True):
-        f.zero_grad()
-        xyz.grad = None
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=autocast is not None):
-            sigma, rgb = (_explicit_forward(f, xyz, t, True) if authors else f(xyz, t))
-        (sigma.float().square().sum() + (rgb.float() * torch.arange(3.0)).sum()).backward()
-        results.append([sigma.detach().float(), rgb.detach().float(), xyz.grad.clone(),
-                        *(p.grad.clone() for p in f.parameters())])
-    rtol = 1e-5 if autocast is None else 2e-2               # bf16: 8 bits of mantissa
-    for a, b in zip(*results):
-        assert torch.allclose(a, b, rtol=rtol, atol=rtol * b.abs().max().item())
-
-
-@pytest.mark.parametrize("autocast", [None, torch.bfloat16, torch.float16])
-@pytest.mark.parametrize("sizes", [dict(depth=4, width=64, skip=-1, remap_width=64,
-                                        colour_width=32),
-                                   dict(depth=8, width=32, skip=4, remap_width=32,
-                                        colour_width=16)])
-def test_the_folded_factor_two_gives_the_explicit_relu2_bit_for_bit(sizes, autocast) -> None:
-    """``2·ReLU`` folded into the next layer's weight (``(2W) r``): values and gradients
-    identical to the explicit multiplication, with and without the skip, in fp32 and
-    under CPU autocast (where the weight is cast before it is doubled)."""
-    torch.manual_seed(3)
-    f = NeRFField(**sizes, anneal_steps=0)
-    xyz, t = torch.rand(777, 3) * 2 - 1, torch.rand(777, 1)
-    scale = 1024.0 if autocast is torch.float16 else 1.0   # as GradScaler: no fp16 subnormals
-    results = []
-    for forward in (f.forward, lambda a, b: _explicit_forward(f, a, b)):
-        f.zero_grad()
-        with torch.autocast("cpu", dtype=autocast or torch.bfloat16, enabled=bool(autocast)):
-            sigma, rgb = forward(xyz, t)
-        assert sigma.dtype == rgb.dtype == (autocast or torch.float32)   # autocast took hold
-        loss = sigma.float().square().sum() + (rgb.float() * torch.arange(3.0)).sum()
-        (loss * scale).backward()
-        results.append([sigma.detach(), rgb.detach(), *(p.grad.clone() for p in f.parameters())])
-    assert len(results[0]) == 2 + len(list(f.parameters()))
-    for a, b in zip(*results):
-        assert torch.equal(a, b)
+def test_the_layers_are_modules_whose_hooks_run() -> None:
+    """Every linear layer is called as a module: a forward hook on each sees the inputs of
+    the written-out pass (the encoding, then the hidden activations)."""
+    f = NeRFField(depth=3, width=16, skip=0, pos_bands=2, time_bands=1, remap_width=8,
+                  colour_width=8)
+    seen: dict[str, tuple[int, ...]] = {}
+    for name, module in f.named_modules():
+        if isinstance(module, nn.Linear):
+            module.register_forward_hook(
+                lambda m, inp, out, name=name: seen.__setitem__(name, tuple(out.shape)))
+    f(torch.rand(5, 3), torch.rand(5, 1))
+    assert seen == {"layers.0": (5, 16), "layers.1": (5, 16), "layers.2": (5, 16),
+                    "density": (5, 1), "colour_remap": (5, 8), "colour_hidden": (5, 8),
+                    "colour_out": (5, 3)}
 
 
 def test_config_instantiates_the_field_and_carries_the_optimiser() -> None:
@@ -331,8 +238,9 @@ def test_render_through_nerf_field_under_bf16_autocast_is_finite() -> None:
     d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     t = torch.tensor([[0.0], [1.0], [0.5]])
     with torch.autocast("cpu", dtype=torch.bfloat16):
-        levels = Renderer(16, 16)(f, o, d, t, torch.full((3, 3), 0.5), perturb=True,
-                                  gen=torch.Generator().manual_seed(0))
+        levels = VolumeRenderer(16, 16).render_rays(f, o, d, t, torch.full((3, 3), 0.5),
+                                                    perturb=True,
+                                                    gen=torch.Generator().manual_seed(0))
         loss = sum(((lv["rgb"] - 0.3) ** 2).mean() + lv["opacity"].mean() for lv in levels)
     loss.backward()
     assert all(lv["rgb"].dtype == torch.float32 for lv in levels)
@@ -386,20 +294,3 @@ def test_density_alone_is_the_forward_density_bit_for_bit(skip, autocast) -> Non
         alone = f.density_only(xyz, t)
     assert alone.dtype == full.dtype == (torch.bfloat16 if autocast else torch.float32)
     assert torch.equal(alone, full) and float(alone.float().std()) > 0
-
-
-def test_grouped_features_refuse_a_window_of_the_wrong_length() -> None:
-    """A window or host weights that do not have one value per angle column (``F``) stop
-    with one error naming the argument, before anything is written."""
-    f = NeRFField(depth=1, width=8, pos_bands=2, time_bands=1, anneal_steps=0)
-    x = torch.rand(5, 4)
-    n = f.feature_freqs.shape[1]                               # 3·2 + 1 = 7 columns
-    with pytest.raises(InputError, match="window"):
-        encode_grouped(x, f.feature_freqs, torch.ones(n + 1))
-    with pytest.raises(InputError, match="weights"):
-        encode_grouped(x, f.feature_freqs, torch.ones(n), weights=[1.0] * (n - 1))
-    with pytest.raises(InputError, match="weights"):
-        encode_grouped(x, f.feature_freqs, None, weights=[0.5] * n)     # no window
-    half = torch.full((n,), 0.5)
-    assert torch.equal(encode_grouped(x, f.feature_freqs, half, weights=[0.5] * n),
-                       encode_grouped(x, f.feature_freqs, half))      # weights read back

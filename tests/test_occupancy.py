@@ -11,7 +11,7 @@ from baselines import HexPlaneField
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.render.occupancy import OccupancyGrid
-from eventrecon.render.volume import Renderer
+from eventrecon.render.volume import VolumeRenderer
 
 CYL = {"radius": 0.5, "y_min": -0.75, "y_max": 0.25}
 
@@ -46,8 +46,8 @@ def _rays(n: int, seed: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         (n, 3), 0.35)
 
 
-def _with_grid(field: Field, **grid) -> Renderer:
-    r = Renderer(n_coarse=32, n_fine=32, skip="grid", occupancy=grid, **CYL)
+def _with_grid(field: Field, **grid) -> VolumeRenderer:
+    r = VolumeRenderer(n_coarse=32, n_fine=32, skip="grid", occupancy=grid, **CYL)
     for step in range(3):
         r.occupancy.update(lambda x, t: r.masked_density(field, x, t),
                            torch.Generator().manual_seed(step))
@@ -56,12 +56,12 @@ def _with_grid(field: Field, **grid) -> Renderer:
 
 def test_unasked_grid_skips_nothing_and_the_render_equals_the_dense_one():
     field = Blob()
-    dense = Renderer(n_coarse=32, n_fine=32, **CYL)
-    fresh = Renderer(n_coarse=32, n_fine=32, skip="grid", **CYL)
+    dense = VolumeRenderer(n_coarse=32, n_fine=32, **CYL)
+    fresh = VolumeRenderer(n_coarse=32, n_fine=32, skip="grid", **CYL)
     assert fresh.occupancy.occupied_fraction() == 1.0
     o, d, t, bg = _rays(300, 0)
-    a = dense(field, o, d, t, bg)[-1]["rgb"]
-    b = fresh(field, o, d, t, bg)[-1]["rgb"]
+    a = dense.render_rays(field, o, d, t, bg)[-1]["rgb"]
+    b = fresh.render_rays(field, o, d, t, bg)[-1]["rgb"]
     assert (a - b).abs().max().item() <= 2e-4  # only the transmittance stop differs
 
 
@@ -95,11 +95,11 @@ def test_skipped_render_equals_dense_and_kept_gradients_are_identical(groups: in
     dense_field, skip_field = Blob(k=20.0), Blob(k=20.0)
     r_skip = _with_grid(skip_field, resolution=32, time_bins=8, threshold=1e-6)
     r_skip.march_chunks = groups
-    r_dense = Renderer(n_coarse=32, n_fine=32, **CYL)
+    r_dense = VolumeRenderer(n_coarse=32, n_fine=32, **CYL)
     o, d, t, bg = _rays(400, 1)
     gen = (torch.Generator().manual_seed(5), torch.Generator().manual_seed(5))
-    out_d = r_dense(dense_field, o, d, t, bg, perturb=True, gen=gen[0])
-    out_s = r_skip(skip_field, o, d, t, bg, perturb=True, gen=gen[1])
+    out_d = r_dense.render_rays(dense_field, o, d, t, bg, perturb=True, gen=gen[0])
+    out_s = r_skip.render_rays(skip_field, o, d, t, bg, perturb=True, gen=gen[1])
     for a, b in zip(out_d, out_s):
         assert torch.allclose(a["rgb"], b["rgb"], atol=1e-6)
         assert torch.allclose(a["opacity"], b["opacity"], atol=1e-6)
@@ -115,7 +115,7 @@ def _fit_hexplane(steps: int = 150) -> HexPlaneField:
     """A tiny HexPlane trained on the blob's density (σ = exp(raw) is never exactly 0)."""
     torch.manual_seed(0)
     f = HexPlaneField(rank=4, resolution=(24, 24, 24, 8))
-    r = Renderer(**CYL)
+    r = VolumeRenderer(**CYL)
     f.set_scene_box(*r.cylinder.box())
     target = Blob()
     opt = torch.optim.Adam(f.parameters(), lr=3e-2)
@@ -135,12 +135,12 @@ def _fit_hexplane(steps: int = 150) -> HexPlaneField:
 
 def test_trained_field_renders_agree_within_1e3_with_a_conservative_grid():
     f = _fit_hexplane()
-    dense = Renderer(n_coarse=32, n_fine=32, **CYL)
+    dense = VolumeRenderer(n_coarse=32, n_fine=32, **CYL)
     skip = _with_grid(f, resolution=32, time_bins=8, threshold=1e-3)
     assert skip.occupancy.occupied_fraction() < 0.9  # something is skipped
     o, d, t, bg = _rays(500, 2)
     with torch.no_grad():
-        a = dense(f, o, d, t, bg)[-1]["rgb"]
+        a = dense.render_rays(f, o, d, t, bg)[-1]["rgb"]
         b = skip(f, o, d, t, bg)[-1]["rgb"]
     assert (a - b).abs().max().item() <= 1e-3
 
@@ -151,13 +151,13 @@ def test_fewer_samples_reach_the_field_and_the_grid_resumes_exactly():
     seen: list[int] = []
     hook = field.register_forward_hook(lambda m, inp, out: seen.append(inp[0].shape[0]))
     o, d, t, bg = _rays(500, 3)
-    r(field, o, d, t, bg, perturb=True, gen=torch.Generator().manual_seed(0))
+    r.render_rays(field, o, d, t, bg, perturb=True, gen=torch.Generator().manual_seed(0))
     hook.remove()
     per_ray = sum(seen) / 500
     assert per_ray < 0.25 * (32 + 32)
     # the grid is state: saved and restored exactly, and a further update is the same
     state = {k: v.clone() for k, v in r.state_dict().items()}
-    again = Renderer(n_coarse=32, n_fine=32, skip="grid", occupancy={"resolution": 32,
+    again = VolumeRenderer(n_coarse=32, n_fine=32, skip="grid", occupancy={"resolution": 32,
                      "time_bins": 8, "threshold": 0.01}, **CYL)
     again.load_state_dict(state)
     assert torch.equal(again.occupancy.occupancy, r.occupancy.occupancy)
@@ -178,11 +178,11 @@ def test_training_marches_in_one_field_call_with_the_image_march_stops_as_masks(
     calls: list[int] = []
     hook = field.register_forward_hook(lambda m, inp, out: calls.append(inp[0].shape[0]))
     o, d, t, bg = _rays(300, 4)
-    trained = r(field, o, d, t, bg)
+    trained = r.render_rays(field, o, d, t, bg)
     n_train, rows_train = len(calls), sum(calls)
     calls.clear()
     with torch.no_grad():
-        image = r(field, o, d, t, bg)
+        image = r.render_rays(field, o, d, t, bg)
     hook.remove()
     assert (n_train, len(calls)) == (2, 5)       # coarse call(s) + the fine level
     assert rows_train > sum(calls)               # samples behind a stop: evaluated, masked
@@ -194,7 +194,7 @@ def test_training_marches_in_one_field_call_with_the_image_march_stops_as_masks(
 
 def test_grid_marks_outside_the_cylinder_empty():
     g = OccupancyGrid([-0.5, -0.75, -0.5], [0.5, 0.25, 0.5], resolution=16, time_bins=2)
-    r = Renderer(**CYL)
+    r = VolumeRenderer(**CYL)
 
     class Fog(Field):
         def forward(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
@@ -213,12 +213,12 @@ def test_grid_queries_ask_the_density_alone_in_blocks_under_the_image_dtype():
     ``query_rows`` (the last one padded to a repeated size), fp32 out, and under the run's
     image dtype (bf16 here, where the CPU has it natively) within bf16's rounding."""
     from eventrecon.fields import NeRFField
-    from eventrecon.precision import image_autocast
+    from eventrecon.render.renderer import image_autocast
 
     torch.manual_seed(0)
     field = NeRFField(depth=2, width=32, skip=-1, pos_bands=4, time_bands=2, remap_width=32,
                       colour_width=16, anneal_steps=0)
-    r = Renderer(n_coarse=8, n_fine=8, skip="grid", query_rows=1000, **CYL)
+    r = VolumeRenderer(n_coarse=8, n_fine=8, skip="grid", query_rows=1000, **CYL)
     g = torch.Generator().manual_seed(1)
     x, t = torch.rand(4200, 3, generator=g) - 0.5, torch.rand(4200, 1, generator=g)
     rows: list[int] = []

@@ -408,29 +408,6 @@ def test_betas_power_raises_adams_betas_and_the_record_and_tables_say_so(data_di
             build.build_module(tiny_config(data_dir, bad), props, None, Segment(0, 1000))
 
 
-def test_a_refined_grid_is_built_recorded_and_footnoted(data_dir: Path, tmp_path: Path):
-    from eventrecon.render.occupancy_refined import RefinedGrid
-    from eventrecon.report.cells import method_notes
-    from eventrecon.report.runs import collect_runs
-    from eventrecon.summary import format_summary
-    cfg = tiny_config(data_dir, "render.occupancy.refine=[2,4]")
-    props = build.scene_properties(cfg, build.load_dataset(cfg))
-    grid = build.build_renderer(cfg.render, props).occupancy
-    assert isinstance(grid, RefinedGrid) and grid.refine == (2, 4)
-    assert grid.occupancy.shape[0] == 4 * grid.time_bins
-    info = records.run_info(cfg, {})
-    assert info["skip_refine"] == [2, 4]
-    assert records.run_info(tiny_config(data_dir), {})["skip_refine"] is None
-    records.write_metrics(tmp_path / "r" / "0", {**info, "status": "ok", "psnr": 25.0})
-    notes = " ".join(method_notes(collect_runs([tmp_path / "r"])))
-    assert "the grid refined where occupied in some runs (render.occupancy.refine=[2, 4])" \
-        in notes
-    text = format_summary({**info, "status": "ok"}, tmp_path)
-    assert "empty-space skipping (grid refined 2× in space, 4× in time)" in text
-    with pytest.raises(InputError, match=r"render\.occupancy\.refine"):
-        records.run_info(tiny_config(data_dir, "render.occupancy.refine=5"), {})
-
-
 def test_a_segment_trained_by_an_older_method_version_trains_again(
         data_dir: Path, tmp_path: Path, monkeypatch, caplog):
     old = records.METHOD_VERSION

@@ -6,8 +6,8 @@ class path or an argument is one line naming the config key, not a traceback:
 
 - ``cfg.model``  → the :class:`~eventrecon.fields.base.Field` (``model.optim`` holds the
   optimiser settings, read by :func:`build_module`);
-- ``cfg.render`` → the :class:`~eventrecon.render.volume.Renderer`, with the scene's
-  clipping cylinder;
+- ``cfg.render`` → the :class:`~eventrecon.render.renderer.Renderer` (the volume
+  renderer by default), with the scene's clipping cylinder;
 - ``cfg.loss``   → the :class:`~eventrecon.losses.LossConfig`, with the scene's ε and θ;
 - ``cfg.logger`` and ``cfg.trainer.callbacks`` → Lightning's logger and extra callbacks.
 
@@ -48,7 +48,7 @@ from eventrecon.optim_settings import (
 )
 from eventrecon.precision import image_dtype, run_precision
 from eventrecon.records import run_info
-from eventrecon.render.volume import Renderer
+from eventrecon.render.renderer import Renderer
 
 __all__ = ["instantiate", "load_dataset", "scene_properties", "build_field",
            "build_renderer", "build_loss", "build_module", "build_logger",

@@ -168,12 +168,12 @@ class HeldOutMonitor(L.Callback):
                        device: torch.device) -> np.ndarray:
         cams = self.split.cameras
         uv = cams.pixel_grid()[self.pix]
-        o, d = cams.rays(torch.full((uv.shape[0],), v, dtype=torch.long), uv)
+        view = torch.full((uv.shape[0],), v, dtype=torch.long)
         bg = self.bg[v].reshape(-1, 3)[self.pix]
         tt = torch.full((uv.shape[0], 1), t)
         with renderer.image_autocast(device):
-            levels = renderer(field, o.to(device), d.to(device), tt.to(device),
-                              bg.to(device), perturb=False)
+            levels = renderer(field, cams, view, uv, tt.to(device), bg.to(device),
+                              perturb=False)
         return levels[-1]["rgb"].float().clamp(0, 1).cpu().numpy()
 
     def _append_curve(self, step: int, row: dict, kind: str, trainer: L.Trainer) -> None:

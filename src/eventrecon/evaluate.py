@@ -23,7 +23,6 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from eventrecon.allocator import retain_freed_memory
 from eventrecon.build import load_dataset, load_segment, scene_properties
 from eventrecon.checkpointing import atomic_write_json
 from eventrecon.colour import linear_to_srgb
@@ -36,7 +35,7 @@ from eventrecon.fields.base import Field
 from eventrecon.metrics import evaluate_images, psnr, subject_scores
 from eventrecon.precision import image_dtype, run_precision
 from eventrecon.records import METRICS_FILE, read_metrics, run_info
-from eventrecon.render.volume import Renderer
+from eventrecon.render.renderer import Renderer
 from eventrecon.segments import crossfade_weights, run_segments, run_window
 from eventrecon.taskprogress import TaskProgress
 
@@ -281,5 +280,4 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    retain_freed_memory()
     raise SystemExit(main())

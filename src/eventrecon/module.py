@@ -5,8 +5,9 @@ Per step (docs/method.md "Per-iteration sampling"):
 1. ``batch = batcher.sample(n_rays, gen)`` with ``gen`` seeded by ``(seed, step, rank)`` —
    the batch is a pure function of the step, so a resumed run replays the same batches,
    and DDP ranks draw different rays;
-2. every ray is rendered at three times ``t0, t1, t_ref`` in one renderer call (the
-   rays stacked ``[3N]``), coarse and fine levels by ONE field;
+2. every pixel is rendered at three times ``t0, t1, t_ref`` in one renderer call (the
+   samples stacked ``[3N]``; :mod:`eventrecon.render.renderer`), coarse and fine levels
+   of the volume renderer by ONE field;
 3. :func:`eventrecon.losses.total_loss` sums L_event, L_acc, L_rgb and the ramped
    L_sparsity over both levels; the field's own regulariser (e.g. TV) is added.
 
@@ -32,7 +33,7 @@ from eventrecon.data.datamodule import StepCounter
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.losses import LossConfig, total_loss
-from eventrecon.render.volume import Renderer
+from eventrecon.render.renderer import Renderer
 
 __all__ = ["EventNeRFModule", "StepConfig", "NonFiniteLossError", "step_generator",
            "adamw_fused", "field_class_name"]
@@ -140,7 +141,7 @@ class EventNeRFModule(L.LightningModule):
 
     Args:
         field: the representation backbone.
-        renderer: the volume renderer (holds the clipping cylinder and ``clip_scale``).
+        renderer: the :class:`~eventrecon.render.renderer.Renderer` of the field.
         batcher: draws the training batch of the segment; ``None`` takes the one the
             trainer's :class:`~eventrecon.data.datamodule.SegmentDataModule` builds on
             this process's device in ``setup``.
@@ -206,16 +207,14 @@ class EventNeRFModule(L.LightningModule):
     # ------------------------------------------------------------------ training
     def render_three(self, batch: dict[str, Tensor], gen: torch.Generator | None,
                      perturb: bool = True) -> list[dict[str, Tensor]]:
-        """Render each ray at ``t0, t1, t_ref``; per level a dict of ``[N, ...]`` outputs
-        with keys ``rgb_t0, rgb_t1, rgb_ref, opacity_t0, opacity_t1, opacity_ref``.
-        The three renders of a ray share their coarse samples (``copies=3``)."""
-        n = batch["rays_o"].shape[0]
-        o = batch["rays_o"].repeat(3, 1)
-        d = batch["rays_d"].repeat(3, 1)
+        """Render each pixel at ``t0, t1, t_ref`` in one renderer call (the samples stacked
+        ``[3N]``, ``copies=3``); per level a dict of ``[N, ...]`` outputs with keys
+        ``rgb_t0, rgb_t1, rgb_ref, opacity_t0, opacity_t1, opacity_ref``."""
+        n = batch["view"].shape[0]
         t = torch.cat([batch["t0"], batch["t1"], batch["t_ref"]], 0)
-        bg = batch["bg"].repeat(3, 1)
-        self.renderer.field_inputs = 0
-        levels = self.renderer(self.field, o, d, t, bg, perturb=perturb, gen=gen, copies=3)
+        levels = self.renderer(self.field, self.batcher.cameras, batch["view"].repeat(3),
+                               batch["uv"].repeat(3, 1), t, batch["bg"].repeat(3, 1),
+                               perturb=perturb, gen=gen, copies=3)
         out = []
         for lv in levels:
             rgb, opa = lv["rgb"].split(n), lv["opacity"].split(n)
@@ -228,7 +227,7 @@ class EventNeRFModule(L.LightningModule):
         gen = step_generator(self.step_cfg.seed, step, stream=int(self.global_rank))
         batch = self.batcher.sample(self.step_cfg.n_rays, gen)
         self._set_lr(step)
-        n_rays = int(batch["rays_o"].shape[0])
+        n_rays = int(batch["view"].shape[0])
         self.last_window = self.batcher.last_window  # Python floats: no device sync
         levels = self.render_three(batch, gen)
         terms = total_loss(levels, batch, self.loss_cfg, step)
@@ -250,10 +249,8 @@ class EventNeRFModule(L.LightningModule):
                 self.log(f"train/{k}", v.detach(), on_step=True, on_epoch=False)
             self.log("train/lr", self.trainer.optimizers[0].param_groups[0]["lr"],
                      on_step=True, on_epoch=False)
-            self.log("train/samples_per_ray", self.renderer.field_inputs / max(1, 3 * n_rays),
-                     on_step=True, on_epoch=False)
-            self.log("train/clip_scale", float(self.renderer.clip_scale), on_step=True,
-                     on_epoch=False)
+            for key, value in self.renderer.step_stats(3 * n_rays).items():
+                self.log(f"train/{key}", value, on_step=True, on_epoch=False)
         return loss
 
     def _skip_nonfinite(self, step: int, terms: dict[str, Tensor]) -> None:
@@ -280,7 +277,7 @@ class EventNeRFModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint["eventrecon"] = {
             "field_class": field_class_name(self.field),
-            "clip_scale": float(self.renderer.clip_scale),
+            "clip_scale": float(getattr(self.renderer, "clip_scale", 1.0)),
             "nonfinite_total": self.nonfinite_total,
             "opacity_log": list(self.opacity_log),
             "method_version": records.METHOD_VERSION,
@@ -295,7 +292,8 @@ class EventNeRFModule(L.LightningModule):
             where = getattr(self._trainer, "ckpt_path", None) or "checkpoint"
             raise InputError(where, "eventrecon.field_class",
                              f"a checkpoint of {mine} (this run's model)", meta["field_class"])
-        self.renderer.clip_scale = meta.get("clip_scale", self.renderer.clip_scale)
+        if hasattr(self.renderer, "clip_scale"):
+            self.renderer.clip_scale = meta.get("clip_scale", self.renderer.clip_scale)
         self.nonfinite_total = meta.get("nonfinite_total", 0)
         step = int(checkpoint.get("global_step", 0))
         self.opacity_log = [(int(s), float(o)) for s, o in meta.get("opacity_log", [])

@@ -2,44 +2,34 @@
 
 The authors train with mixed precision (fp16 AMP on their GPUs). On a CPU the mixed
 counterpart is bf16 autocast, which pays only where the CPU computes in bf16 natively
-(AVX512-BF16 or AMX tiles): there it made the 4×64 NeRF step 2.1× faster on an AMX Xeon
-and 1.97× on a 2-core AMD EPYC (Zen 4) with AVX512-BF16 and no AMX (165.6 → 83.9 ms per
-training step, 108.1 → 47.6 ms per field step at 16 384 rows), while on a CPU with AVX2
-only oneDNN falls back to a slow path and the same step is ~10× *slower* (measured on a
-2-core AMD EPYC whose hypervisor hides AVX-512: 99.8 ms → 1138 ms per field step, 113 →
-1035 ms per training step; ``python -m benchmarks compile``). So
+(AVX512-BF16 or AMX): there the NeRF MLP's step is about twice as fast, while on a CPU
+with AVX2 only oneDNN emulates bf16 and the same step is several times *slower*. So
 ``auto`` resolves to
 
 - ``16-mixed`` on a GPU (the authors' AMP);
 - ``bf16-mixed`` on a CPU with native bf16, for a backbone whose step it speeds up
   (``model.cpu_bf16: true``: the NeRF MLP);
 - ``32-true`` on any other CPU, and for the grid backbones everywhere on a CPU
-  (``model.cpu_bf16: false``). Their steps are gathers, scatters and ``grid_sample``,
-  which autocast leaves in fp32: on an AMX Xeon, 150-step runs at one thread, alternated
-  twice, took the same time in both precisions within ±4 % (NGP 0.372 / 0.381 s per step
-  in fp32 against 0.381 / 0.356 in bf16, HexPlane 0.225 / 0.215 against 0.221 / 0.219,
-  TensoRF-CP 0.130 / 0.138 against 0.137 / 0.133). fp32 then costs nothing and keeps
-  their records exact and alike on every CPU.
+  (``model.cpu_bf16: false``): their steps are gathers, scatters and interpolations, which
+  autocast leaves in fp32, so fp32 costs nothing and keeps their records alike on every CPU.
 
 Any other value is passed to Lightning as written. The run's record names the precision
-it trained with (``precision`` in ``metrics.json``).
-
-Renders without gradients (held-out images, the training curve's points) run under the
-same autocast (:func:`mixed_dtype`; ``render.image_autocast``), as the authors'
-``render_single_image.py`` renders test images under ``autocast()``.
+it trained with (``precision`` in ``metrics.json``). Renders without gradients (held-out
+images, the training curve's points) run under the same autocast (:func:`image_dtype`;
+``render.image_autocast``), as the authors' ``render_single_image.py`` renders test
+images under ``autocast()``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from typing import Any
 
 from eventrecon.errors import InputError
 
-__all__ = ["AUTO", "LIGHTNING_PRECISIONS", "cpu_has_native_bf16", "image_autocast",
-           "image_dtype", "mixed_dtype", "resolve_precision", "run_precision"]
+__all__ = ["AUTO", "LIGHTNING_PRECISIONS", "cpu_has_native_bf16", "image_dtype",
+           "mixed_dtype", "resolve_precision", "run_precision"]
 
 AUTO = "auto"
 _GPU = ("gpu", "cuda")
@@ -142,24 +132,10 @@ def _pays_on(dtype: Any, device_type: str | None) -> bool:
 def image_dtype(render_cfg: Mapping[str, Any], precision: str | int | None,
                 device_type: str | None = None) -> Any:
     """The autocast dtype of a run's renders without gradients (held-out images, curve
-    points) and of its occupancy grid's density queries (``Renderer.masked_density``;
-    measured in bf16 on CPUs only, session 47): :func:`mixed_dtype` of the run's
+    points, the occupancy grid's density queries): :func:`mixed_dtype` of the run's
     ``precision``, as the authors render their test images under the AMP they train
-    with (``render_single_image.py``). ``None`` (fp32)
-    where ``render.image_autocast`` is false, and on a CPU (``device_type`` "cpu") for
-    fp16 or for bf16 without native bf16 (both slow there). On a 2-core AMX Xeon, bf16 made
-    the default run's held-out evaluation 1.29× faster and moved its PSNR by 0.001 dB
-    (docs/results/history.md, "Session 43")."""
+    with (``render_single_image.py``). ``None`` (fp32) where ``render.image_autocast`` is
+    false, and on a CPU (``device_type`` "cpu") for fp16 or for bf16 without native bf16
+    (both emulated there, and slow)."""
     dtype = mixed_dtype(precision) if render_cfg.get("image_autocast", True) else None
     return dtype if dtype is not None and _pays_on(dtype, device_type) else None
-
-
-def image_autocast(dtype: Any, device: Any) -> AbstractContextManager:
-    """Autocast to ``dtype`` (:func:`image_dtype`, device-agnostic) on ``device``, or fp32
-    where ``dtype`` is ``None`` or does not suit the device (:func:`image_dtype`'s rule)."""
-    import torch
-
-    kind = torch.device(device).type
-    if dtype is None or not _pays_on(dtype, kind):
-        return nullcontext()
-    return torch.autocast(kind, dtype=dtype)

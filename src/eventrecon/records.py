@@ -127,7 +127,6 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
             "experiment": cfg.get("sweep_name"), "tag": cfg.get("tag"), "seed": cfg.get("seed"),
             # what the run changed from the paper's method (the tables footnote it)
             "schedule": cfg.trainer.get("schedule"), "skip": cfg.render.get("skip"),
-            "skip_refine": _refine(cfg.render),
             "sizing": sizing_choice(), "method_version": METHOD_VERSION,
             "lr_end_factor": float(cfg.trainer.get("lr_end_factor", 1.0)),
             "lr_warmup": int(cfg.trainer.get("lr_warmup", 0)),
@@ -137,19 +136,9 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
             "betas_power": float((cfg.model.get("optim", {}) or {}).get("betas_power", 1.0)),
             "precision": str(precision),
             # held-out images rendered under that precision's autocast (records without the
-            # key, from before session 43, rendered them in fp32)
+            # key rendered them in fp32)
             "image_autocast": image_dtype(cfg.render, precision, _device_type(cfg)) is not None,
             "data_id": data_id}
-
-
-def _refine(render: Any) -> list[int] | None:
-    """``render.occupancy.refine`` of a run that skips with a grid (a refined grid,
-    :mod:`eventrecon.render.occupancy_refined`), else ``None``."""
-    refine = (render.get("occupancy") or {}).get("refine")
-    if render.get("skip") != "grid" or refine is None:
-        return None
-    from eventrecon.render.occupancy_refined import config_pair  # the renderer's check
-    return list(config_pair(refine, "refine", 1))
 
 
 def _device_type(cfg: Any) -> str | None:

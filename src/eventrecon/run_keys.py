@@ -32,7 +32,7 @@ from eventrecon.optim_settings import (
     optim_numbers,
 )
 from eventrecon.precision import run_precision
-from eventrecon.render.volume import Renderer
+from eventrecon.render.renderer import Renderer
 
 __all__ = ["check_run_keys", "check_data_keys"]
 

@@ -45,7 +45,6 @@ from eventrecon.memory import peak_mb, reset_peak
 from eventrecon.module import EventNeRFModule
 from eventrecon.precision import run_precision
 from eventrecon.progress import Progress
-from eventrecon.render.occupancy import OccupancyUpdate
 from eventrecon.run_keys import check_run_keys
 from eventrecon.segments import run_segments, run_window, segment_config, segment_steps
 
@@ -150,8 +149,7 @@ def train_segment(cfg: DictConfig, props: SceneProperties, train: SplitData,
                                  cfg.trainer.curve_pixels, cfg.render.chunk, cfg.seed)
         callbacks.append(monitor)
     callbacks += list(module.field.callbacks())
-    if module.renderer.occupancy is not None:
-        callbacks.append(OccupancyUpdate(cfg.seed + 1000 * k))
+    callbacks += list(module.renderer.callbacks(cfg.seed + 1000 * k))
     callbacks.append(Progress(k, n_segments, cfg.trainer.get("progress", "auto"),
                               cfg.trainer.get("progress_every_s", 30.0), monitor))
     trainer = _trainer(cfg, seg_dir, callbacks, k)

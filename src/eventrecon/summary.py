@@ -52,9 +52,7 @@ def format_summary(metrics: Mapping[str, Any], out_dir: str | Path) -> str:
     mem = metrics.get("peak_mem_mb")
     changed = ["schedules compressed" if metrics.get("schedule") == "compressed" else "",
                f"size conf/sizing/{metrics['sizing']}.yaml" if metrics.get("sizing") else "",
-               ("empty-space skipping" + (" (grid refined {}× in space, {}× in time)".format(
-                   *metrics["skip_refine"]) if metrics.get("skip_refine") else ""))
-               if metrics.get("skip") == "grid" else "",
+               "empty-space skipping" if metrics.get("skip") == "grid" else "",
                (f"lr held for the first {metrics['lr_decay_start']:.0%} of the steps, then"
                 if metrics.get("lr_decay_start") else "lr")
                + f" decayed to {metrics['lr_end_factor']:g}× by the last step"

@@ -9,7 +9,7 @@ Each call of :meth:`RayBatcher.sample` draws, with its own generator,
    the image, each set without replacement (the authors' ``random_sample``);
 3. per view, a reference frame among the two nearest to ``t1`` (drawn for each view
    on its own, as the authors' code does) and ``E_ref→1 = V(t1) − V(t_ref)``;
-4. rays through the pixels jittered by ±0.5 px.
+4. the pixel positions jittered by ±0.5 px (the renderer casts the rays through them).
 
 All tensors live on the batcher's device; the generator makes the batch a pure
 function of ``(seed, step)``, so a resumed run sees the same batches.
@@ -102,11 +102,12 @@ class RayBatcher:
         """One training batch of ``N = n_rays`` rays.
 
         Returns:
-            dict with ``rays_o, rays_d [N,3]``, ``view, row, col [N]``, ``t0, t1, t_ref
-            [N,1]`` (normalised), ``events [N]`` = E(t0,t1), ``events_ref [N]`` =
-            V(t1) − V(t_ref), ``ref_rgb [N,3]`` (or ``[N]`` raw), ``bg [N,3]``,
-            ``mask [N,3]`` (Bayer one-hot) or ``None`` for grey event pixels, ``weight
-            [N]`` the split's loss mask at each ray's pixel or ``None`` (none given).
+            dict with ``view, row, col [N]``, ``uv [N, 2]`` the jittered pixel positions
+            (float64, column and row), ``t0, t1, t_ref [N,1]`` (normalised),
+            ``events [N]`` = E(t0,t1), ``events_ref [N]`` = V(t1) − V(t_ref),
+            ``ref_rgb [N,3]`` (or ``[N]`` raw), ``bg [N,3]``, ``mask [N,3]`` (Bayer
+            one-hot) or ``None`` for grey event pixels, ``weight [N]`` the split's loss
+            mask at each ray's pixel or ``None`` (none given).
         """
         seg, H, W = self.segment, self.cameras.height, self.cameras.width
         t0, t1 = sampling.sample_window(gen)
@@ -127,13 +128,11 @@ class RayBatcher:
         events, events_ref = v1 - v0, v1 - v_ref
         uv = torch.stack([col, row], -1).double()
         uv = sampling.jitter(uv, gen)
-        o, d = self.cameras.rays(view.cpu(), uv.cpu())
         # Colour event pixels see one channel; grey event pixels see the channel mean
         # (mask None, see eventrecon.losses.event_channels).
         mask = bayer_mask_at(row, col).float() if self.bayer else None
         return {
-            "rays_o": o.to(self.device), "rays_d": d.to(self.device),
-            "view": view, "row": row, "col": col,
+            "view": view, "row": row, "col": col, "uv": uv,
             "t0": torch.full((n, 1), float(t0), device=self.device),
             "t1": torch.full((n, 1), float(t1), device=self.device),
             "t_ref": seg.normalise(t_ref_u)[:, None].to(self.device, torch.float32),

@@ -26,33 +26,6 @@ authors' network the remap is concatenated with a zeroed view-direction encoding
 features before the hidden colour layer, which changes nothing but that layer's default
 initialisation range (``1/sqrt(fan_in)`` with ``fan_in = 256 + 27``): it is initialised
 with that range here.
-
-The factor 2 of ``2·ReLU`` is not applied as a multiplication over the activations:
-the layer after it multiplies its weight instead (``W (2 r) + b = (2W) r + b``, a
-product over the ``[out, in]`` weight, not the ``[N, in]`` activations). Scaling by a
-power of two is exact in floating point, so outputs and gradients are bit for bit those
-of the explicit ``2·ReLU``, in fp32 and under bf16 or fp16 autocast
-(``tests/test_nerf_field.py``; in fp16 short of its subnormal and overflow ranges), and
-a full-size pass over the activations goes away each way. Folding the factor into
-``addmm``'s ``alpha`` instead (the form before) saves the forward pass only: autograd's
-backward of ``addmm`` scales the ``[N, in]`` input gradient by ``alpha`` in a pass of
-its own, five per step in the 4×64 field (~10 % of its profiled time; measured 1.05× /
-1.07× faster at one / two threads, docs/results/history.md, "Session 30"). The linear layers are
-therefore applied through their parameters (:mod:`eventrecon.fields.linear`), not called
-as modules: hooks registered on them do not run. With grad mode off on a CPU
-(evaluation images, the occupancy grid's queries) each hidden layer's ReLU is fused into
-oneDNN's linear, in bf16 where the CPU has it natively (the same values) and in fp32 (the
-same to float32 rounding; :func:`~eventrecon.fields.linear.linear_relu`).
-
-The input features are read in a grouped column order, ``[x, t, sin(A), cos(A)]``
-(:meth:`NeRFField.features`), and the weight columns of the layers that take them are
-gathered to match (:meth:`NeRFField.layer_weight`); the parameters stay in the authors'
-order. Concatenating the band-by-band layout copied a few elements per row and took ~40 %
-of a bf16 forward pass; the function is the same, its first sums run in another order.
-With grad mode off (images, curve points, the occupancy grid's queries) while some bands
-are off, the layers that read the features read only the columns that are not zero, with
-their weight columns (:meth:`NeRFField.active_features`): an untrained field's image at
-step 20 (issue 12's 20-step run) has 12 inputs to its first layer instead of 102.
 """
 
 from __future__ import annotations
@@ -66,16 +39,7 @@ from torch import Tensor, nn
 
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
-from eventrecon.fields.encoding import (
-    ActiveColumns,
-    BandAnnealing,
-    PositionalEncoding,
-    active_columns,
-    encode_active,
-    encode_grouped,
-    grouped_layout,
-)
-from eventrecon.fields.linear import linear, linear_relu
+from eventrecon.fields.encoding import BandAnnealing, PositionalEncoding
 
 __all__ = ["NeRFField"]
 
@@ -83,14 +47,6 @@ __all__ = ["NeRFField"]
 #: Zeroed view-direction features the authors concatenate before the hidden colour layer
 #: (an Embedder of 3 inputs with 4 bands: 3 + 3·4·2); they set that layer's init range.
 ZEROED_VIEWDIR_FEATURES = 27
-
-
-def _feature_dtype(xyz: Tensor) -> torch.dtype | None:
-    """The dtype the features are made in: autocast's where it is active on ``xyz``'s
-    device (the cast the first layer would make), else ``None`` (``xyz``'s)."""
-    device = xyz.device.type
-    return (torch.get_autocast_dtype(device) if torch.amp.is_autocast_available(device)
-            and torch.is_autocast_enabled(device) else None)
 
 
 class NeRFField(Field):
@@ -153,13 +109,6 @@ class NeRFField(Field):
         nn.init.uniform_(self.colour_hidden.weight, -bound, bound)
         nn.init.uniform_(self.colour_hidden.bias, -bound, bound)
         self.colour_out = nn.Linear(colour_width, 3)
-        order, freqs = grouped_layout([self.pos_enc, self.time_enc])
-        self.register_buffer("feature_order", order, persistent=False)
-        self.register_buffer("feature_freqs", freqs, persistent=False)
-        self.register_buffer("skip_order", torch.cat([order, torch.arange(width) + in_dim]),
-                             persistent=False)
-        #: the last band window's kept columns (:meth:`active_features`), keyed by window
-        self._active: tuple[tuple[tuple[float, ...], torch.device], ActiveColumns] | None = None
 
     def set_progress(self, step: float) -> None:
         """Set the band-annealing window of both encodings for training ``step``."""
@@ -171,103 +120,39 @@ class NeRFField(Field):
         weights are stored for it)."""
         return torch.cat([self.pos_enc(xyz), self.time_enc(t.to(xyz.dtype))], dim=-1)
 
-    def features(self, xyz: Tensor, t: Tensor) -> Tensor:
-        """The same features as :meth:`encode`, grouped: ``xyz [N, 3]``, ``t [N, 1]`` →
-        ``[N, in_dim]`` = ``[x, t, sin(A), cos(A)]``, ``A`` every ``2^k x_d`` and
-        ``2^k t`` (:func:`~eventrecon.fields.encoding.encode_grouped`). Equal in value to
-        ``encode(...)[:, feature_order]``, in autocast's dtype where it is active (the
-        cast the first layer would make). The forward pass reads these, at under half
-        the encoding's time, with the weight columns that take them gathered in the
-        same order (:meth:`layer_weight`)."""
-        weights = self._column_weights()
-        window = None
-        if weights is not None:
-            window = torch.cat([e.window.repeat_interleave(e.in_dim)
-                                for e in (self.pos_enc, self.time_enc)]).to(xyz.dtype)
-        return encode_grouped(torch.cat([xyz, t.to(xyz.dtype)], dim=-1), self.feature_freqs,
-                              window, _feature_dtype(xyz), weights)
+    @staticmethod
+    def activation(x: Tensor) -> Tensor:
+        """The authors' ``MyReLU``: ``2·ReLU(x)``."""
+        return 2.0 * F.relu(x)
 
-    def active_features(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, ActiveColumns] | None:
-        """With grad mode off and some band off: the columns of :meth:`features` that are
-        not zero, ``[N, 4 + 2k]`` for ``k`` angle columns on, and which they are
-        (:func:`~eventrecon.fields.encoding.encode_active`); ``None`` otherwise. The
-        layout is rebuilt only when the band window (or the device) changes."""
-        weights = None if torch.is_grad_enabled() else self._column_weights()
-        if weights is None:
-            return None
-        key = (weights, self.feature_freqs.device)
-        if self._active is None or self._active[0] != key:
-            self._active = (key, active_columns(self.feature_freqs, weights))
-        active = self._active[1]
-        x = torch.cat([xyz, t.to(xyz.dtype)], dim=-1)
-        return encode_active(x, active, _feature_dtype(xyz)), active
-
-    def _column_weights(self) -> tuple[float, ...] | None:
-        """The band weight of each angle column of the grouped layout (host floats, the
-        order of ``feature_freqs``' columns); ``None`` when every band is on."""
-        encs = (self.pos_enc, self.time_enc)
-        if all(e.all_on for e in encs):
-            return None
-        return tuple(w for e in encs for w in e.weights for _ in range(e.in_dim))
-
-    def layer_weight(self, i: int, columns: Tensor | None = None) -> Tensor:
-        """Trunk layer ``i``'s weight ``[width, in]`` with its columns in the order of the
-        inputs it receives in :meth:`forward`: the features' columns gathered by
-        ``feature_order`` (layer 0, and the layer after the skip), the weight as stored
-        otherwise. With ``columns`` (grouped feature columns, :meth:`active_features`)
-        only those of the features. A gather of the small weight, differentiable."""
-        weight = self.layers[i].weight
-        if i not in (0, self.skip + 1):
-            return weight
-        order = self.feature_order if i == 0 else self.skip_order
-        if columns is not None:
-            n = self.feature_order.numel()
-            hidden = torch.arange(n, order.numel(), device=columns.device)
-            order = order[columns if i == 0 else torch.cat([columns, hidden])]
-        return torch.index_select(weight, 1, order)
-
-    def _trunk(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, float]:
-        """The trunk's output ``h [N, width]`` and the scale its activation carries
-        (``2·ReLU`` is ``2 h``, applied by the next layer's weight; module docstring).
-        With grad mode off and some bands off the layers that read the features read only
-        the columns that are not zero (:meth:`active_features`): the same sums up to
-        their order."""
-        active = self.active_features(xyz, t)
-        feats, columns = (self.features(xyz, t), None) if active is None else (
-            active[0], active[1].columns)
-        h, scale = feats, 1.0
+    def trunk(self, xyz: Tensor, t: Tensor) -> Tensor:
+        """``h [N, width]``: the hidden layers on the encoding, the encoding concatenated
+        again after layer ``skip``."""
+        feats = self.encode(xyz, t)
+        h = feats
         for i, layer in enumerate(self.layers):
-            h, scale = linear_relu(self.layer_weight(i, columns), layer.bias, h, scale), 2.0
+            h = self.activation(layer(h))
             if i == self.skip:
-                h, scale = torch.cat([feats, h * 2.0], dim=-1), 1.0
-        return h, scale
+                h = torch.cat([feats, h], dim=-1)
+        return h
 
-    def _density(self, h: Tensor, scale: float) -> Tensor:
-        """``σ [N] = softplus(w_σᵀ (scale·h) + b_σ + shift)``."""
-        sigma = linear(self.density.weight, self.density.bias, h, scale)
-        return F.softplus(sigma.squeeze(-1) + self.density_shift)
+    def _density(self, h: Tensor) -> Tensor:
+        """``σ [N] = softplus(w_σᵀ h + b_σ + shift)``."""
+        return F.softplus(self.density(h).squeeze(-1) + self.density_shift)
 
     def density_only(self, xyz: Tensor, t: Tensor) -> Tensor:
-        """``σ [N]`` without the colour branch: the same values as :meth:`forward`'s
-        (the same operations on the same trunk output)."""
-        return self._density(*self._trunk(xyz, t))
+        """``σ [N]`` without the colour branch (the same values as :meth:`forward`'s)."""
+        return self._density(self.trunk(xyz, t))
 
     def forward(self, xyz: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
         """Density and linear colour at ``xyz [N, 3]``, ``t [N, 1]``.
 
-        The same function as the authors' layout (:meth:`encode` through the stored
-        weights); the sums over the first layer's inputs run in another order, so values
-        differ from it in rounding only.
-
         Returns:
             ``(sigma [N] ≥ 0, rgb [N, 3] in (0, 1))``.
         """
-        h, scale = self._trunk(xyz, t)
-        sigma = self._density(h, scale)
-        remap = linear(self.colour_remap.weight, self.colour_remap.bias, h, scale)
-        hidden = linear_relu(self.colour_hidden.weight, self.colour_hidden.bias, remap)
-        rgb = torch.sigmoid(linear(self.colour_out.weight, self.colour_out.bias, hidden, 2.0))
-        return sigma, rgb
+        h = self.trunk(xyz, t)
+        hidden = self.activation(self.colour_hidden(self.colour_remap(h)))
+        return self._density(h), torch.sigmoid(self.colour_out(hidden))
 
     def callbacks(self) -> list[Any]:
         """The band-annealing schedule (:class:`~eventrecon.fields.encoding.BandAnnealing`)."""

@@ -25,26 +25,17 @@ intersection of three exact intervals:
   (:math:`|d_y| < 10^{-12}`) is inside for all ``s`` if :math:`o_y` is in the slab.
 
 The roots are computed in float64 (per ray, so cheap) and returned in the input dtype.
-On a CPU the same expressions run as one compiled loop over the rays (:func:`_intervals`;
-the tensor form's ~40 operations on a training batch's 768 rays cost ~0.44 ms, the loop
-~0.05 ms): the same hits, and the same ends except for the rounding of the square root,
-which ``math.sqrt`` rounds correctly and torch's vectorised float64 ``sqrt`` not always
-(an ulp apart at ~1 ray in 10⁴ in float64; none in 40 000 float32 rays). A NaN ray
-misses in both.
+A ray with a NaN coordinate misses.
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from torch import Tensor
 
 from eventrecon.errors import InputError
-from eventrecon.render.compiled import AVAILABLE
-from eventrecon.render.compiled import compiled as compiled_loop
 
 __all__ = ["Cylinder", "INSIDE_TOL", "PARALLEL_EPS", "NO_CLIPPING"]
 
@@ -55,15 +46,6 @@ PARALLEL_EPS = 1e-12
 #: The renderer's slack (world units) when testing sample points against the cylinder:
 #: points computed at an interval's ends may land one ulp outside.
 INSIDE_TOL = 1e-5
-
-
-def _loop_serves(o: Tensor, d: Tensor) -> bool:
-    """Whether :func:`_intervals` serves rays ``o, d``: numba present, ``[N, 3]`` float32
-    or float64 on the CPU, no gradient asked of them."""
-    return (AVAILABLE and o.device.type == "cpu" and d.device.type == "cpu"
-            and o.dtype in (torch.float32, torch.float64) and d.dtype == o.dtype
-            and o.dim() == 2 and o.shape[1:] == (3,) and d.shape == o.shape
-            and not (torch.is_grad_enabled() and (o.requires_grad or d.requires_grad)))
 
 
 def _quadratic_interval(a: Tensor, b: Tensor, c: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -82,63 +64,6 @@ def _quadratic_interval(a: Tensor, b: Tensor, c: Tensor) -> tuple[Tensor, Tensor
     q_safe = torch.where(q == 0, torch.ones_like(q), q)
     r2 = torch.where(q == 0, r1, c / q_safe)
     return torch.minimum(r1, r2), torch.maximum(r1, r2), ok
-
-
-@compiled_loop
-def _nan_max(a: float, b: float) -> float:
-    """``torch.maximum`` of two floats: NaN if either is."""
-    return a if (a > b or a != a) else b
-
-
-@compiled_loop
-def _nan_min(a: float, b: float) -> float:
-    """``torch.minimum`` of two floats: NaN if either is."""
-    return a if (a < b or a != a) else b
-
-
-@compiled_loop
-def _quadratic(a: float, b: float, c: float) -> tuple[float, float, bool]:
-    """:func:`_quadratic_interval` of one ray, the same expressions."""
-    disc = b * b - a * c
-    ok = disc >= 0
-    sq = math.sqrt(disc if (disc >= 0 or disc != disc) else 0.0)
-    q = -(b + (1.0 if b >= 0 else -1.0) * sq)
-    r1 = q / a
-    r2 = r1 if q == 0 else c / q
-    return _nan_min(r1, r2), _nan_max(r1, r2), ok
-
-
-@compiled_loop
-def _intervals(o: np.ndarray, d: np.ndarray, r: float, y_min: float, y_max: float,
-               eps: float, near: np.ndarray, far: np.ndarray, hit: np.ndarray) -> None:
-    """:meth:`Cylinder.ray_interval` of rays ``o, d [N, 3]`` (cylinder radius ``r``
-    already scaled, ``eps`` = :data:`PARALLEL_EPS`) into ``near, far, hit [N]``: the
-    tensor form's expressions in float64, in its order (sums over the three
-    coordinates left to right)."""
-    inf = math.inf
-    for i in range(o.shape[0]):
-        ox, oy, oz = np.float64(o[i, 0]), np.float64(o[i, 1]), np.float64(o[i, 2])
-        dx, dy, dz = np.float64(d[i, 0]), np.float64(d[i, 1]), np.float64(d[i, 2])
-        lo, hi, ok = _quadratic(dx * dx + dy * dy + dz * dz, ox * dx + oy * dy + oz * dz,
-                                (ox * ox + oy * oy + oz * oz) - 1.0)
-        lo = lo if (lo >= 0 or lo != lo) else 0.0
-        a = dx * dx + dz * dz
-        c = ox * ox + oz * oz - r * r
-        parallel = a < eps
-        c_lo, c_hi, c_ok = _quadratic(1.0 if parallel else a, ox * dx + oz * dz, c)
-        lo = _nan_max(lo, -inf if parallel else c_lo)
-        hi = _nan_min(hi, inf if parallel else c_hi)
-        ok = ok and ((c <= 0) if parallel else c_ok) and r > 0
-        if abs(dy) < eps:
-            ok = ok and y_min <= oy <= y_max
-        else:
-            s1, s2 = (y_min - oy) / dy, (y_max - oy) / dy
-            lo = _nan_max(lo, _nan_min(s1, s2))
-            hi = _nan_min(hi, _nan_max(s1, s2))
-        ok = ok and hi > lo
-        hit[i] = ok
-        near[i] = lo if ok else 0.0
-        far[i] = hi if ok else 0.0
 
 
 @dataclass(frozen=True)
@@ -168,7 +93,7 @@ class Cylinder:
                              f"{self.y_min}, {self.y_max}")
 
     def ray_interval(
-        self, o: Tensor, d: Tensor, radius_scale: float = 1.0, compiled: bool = True
+        self, o: Tensor, d: Tensor, radius_scale: float = 1.0
     ) -> tuple[Tensor, Tensor, Tensor]:
         """Parameter interval of each ray inside the cylinder ∩ unit sphere.
 
@@ -177,8 +102,6 @@ class Cylinder:
             d: ``[N, 3]`` ray directions (unit length for metric ``s``; any non-zero
                 length works, ``s`` is then in units of ``|d|``).
             radius_scale: factor in ``[0, ∞)`` applied to the radius; 0 contains nothing.
-            compiled: on a CPU, rays that need no gradient go through the compiled loop
-                (module docstring); ``False``: the tensor form always.
 
         Returns:
             ``(near [N], far [N], hit [N] bool)`` in ``o``'s dtype: ``0 ≤ near < far``
@@ -187,13 +110,6 @@ class Cylinder:
         """
         if radius_scale < 0:
             raise InputError("clipping", "radius_scale", "a number >= 0", radius_scale)
-        if compiled and _loop_serves(o, d):
-            near = torch.empty(o.shape[0], dtype=torch.float64)
-            far, hit = torch.empty_like(near), torch.empty(o.shape[0], dtype=torch.bool)
-            _intervals(o.detach().contiguous().numpy(), d.detach().contiguous().numpy(),
-                       self.radius * radius_scale, self.y_min, self.y_max, PARALLEL_EPS,
-                       near.numpy(), far.numpy(), hit.numpy())
-            return near.to(o.dtype), far.to(o.dtype), hit
         dtype = o.dtype
         o64, d64 = o.double(), d.double()
         ox, oy, oz = o64.unbind(-1)

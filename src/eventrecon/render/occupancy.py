@@ -54,7 +54,6 @@ import torch
 from torch import Tensor, nn
 
 from eventrecon.errors import InputError
-from eventrecon.render.occupancy_lookup import lookup_rays
 
 __all__ = ["OccupancyGrid", "OccupancyUpdate", "dilate"]
 
@@ -113,7 +112,7 @@ class OccupancyGrid(nn.Module):
     def __init__(self, lo: Sequence[float], hi: Sequence[float], resolution: int = 32,
                  time_bins: int = 8, threshold: float = 0.01, decay: float = 0.95,
                  every: int = 16, fraction: float = 0.25, start_step: int = 0,
-                 chunk: int = 65536, recheck: float = 1.0,
+                 chunk: int = 65536, recheck: float = 0.25,
                  dilation: Sequence[int] = (1, 1)) -> None:
         super().__init__()
         if resolution < 1 or time_bins < 1 or threshold < 0 or not 0 < decay <= 1 \
@@ -191,12 +190,7 @@ class OccupancyGrid(nn.Module):
 
     def occupied_rays(self, o: Tensor, d: Tensor, t: Tensor, s: Tensor) -> Tensor:
         """``[n, K]`` bool: :meth:`occupied` at the samples ``o + s d`` of rays ``o, d
-        [n, 3]`` at times ``t [n, 1]``, ``s [n, K]``. On a CPU in one compiled pass that
-        never stores the points (:mod:`eventrecon.render.occupancy_lookup`: the same mask,
-        ~15× faster at an image's chunk of rays)."""
-        fast = lookup_rays(o, d, t, s, self.lo, self.hi, self.occupancy)
-        if fast is not None:
-            return fast
+        [n, 3]`` at times ``t [n, 1]``, ``s [n, K]``."""
         n, k = s.shape
         return self.occupied(o[:, None, :] + s[..., None] * d[:, None, :],
                              t[:, None, :].expand(n, k, 1))

@@ -1,10 +1,11 @@
-"""How the renderer calls a field: row counts padded to a few repeated sizes.
+"""How the renderer calls a field: row counts padded to a few repeated sizes, and blocks.
 
 With empty-space skipping the number of samples that reach the field changes every call;
-on CPU each new row count of a bf16 linear layer builds a new oneDNN kernel, which made
-training steps twice as slow once the occupancy grid started to skip (docs/results,
-"make train"). :func:`query_field` evaluates the field on :func:`padded_rows` rows and
-cuts the extra ones off again, so values and gradients are those of the real samples.
+on a CPU each new row count of a bf16 linear layer builds a new oneDNN kernel, which costs
+more than the layer itself. :func:`query_field` evaluates the field on :func:`padded_rows`
+rows and cuts the extra ones off again, so values and gradients are those of the real
+samples. Without autograd (images, occupancy updates) the samples go to the field in
+blocks of at most ``max_rows``, so that a field's activations stay in cache.
 """
 
 from __future__ import annotations
@@ -25,13 +26,7 @@ def padded_rows(m: int, per_octave: int) -> int:
     next of ``per_octave`` geometric steps per doubling (``2^{⌈k·log2 m⌉/k}``), then to a
     multiple of 64; ``m`` itself when ``per_octave`` is 0 (or ``m`` is 0).
 
-    Why: with skipping, the number of samples that reach the field changes every call,
-    and on CPU each new row count of a bf16 linear layer builds a new oneDNN kernel.
-    Measured on the 4×64 NeRF MLP (2 cores, bf16 autocast, forward + backward): 1.6–2.3
-    µs per sample for a repeated size, 3.9–5.1 µs for a new size every call, 2.3–2.6 µs
-    with 8 steps per octave; ``make train`` ran at 0.11–0.12 s/step with a sparse grid
-    and 0.073 s/step once every sample (one size) reached the field. The padding costs
-    at most ``2^{1/k} − 1`` more samples (9 % at ``k = 8``).
+    The padding costs at most ``2^{1/k} − 1`` more samples (9 % at ``k = 8``).
 
     >>> padded_rows(1000, 8), padded_rows(1000, 0), padded_rows(0, 8)
     (1024, 1000, 0)
@@ -50,11 +45,8 @@ def query_field(field: Field, x: Tensor, t: Tensor, per_octave: int = 8, max_row
 
     ``max_rows > 0``: without autograd, the samples go to the field in blocks of at most
     ``max_rows`` (each padded as above). A field's samples are independent, so the values
-    are the same up to rounding. Why: on CPU one call on ``M ≳ 10^5`` rows runs about twice
-    as slow per sample as blocks of ~16 k (the 4×64 NeRF MLP, forward, one thread: 1.9–2.0
-    µs per sample up to 65 536 rows, 4.1 at 131 072, 4.7 at 524 288), because the
-    activations no longer stay in cache. With autograd the call is never split: the
-    training step's calls are small, and its numerics stay those of one call."""
+    are the same up to rounding. With autograd the call is never split: the training
+    step's calls are small, and its numerics stay those of one call."""
     return _padded_call(field, x, t, per_octave, max_rows)  # type: ignore[return-value]
 
 

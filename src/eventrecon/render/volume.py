@@ -27,27 +27,23 @@ none, so it is left out: the one place where this quadrature differs from theirs
 
 from __future__ import annotations
 
-import contextlib
-import itertools
 from typing import TYPE_CHECKING, Any
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from eventrecon.colour import GREY_LINEAR
 from eventrecon.errors import InputError
 from eventrecon.fields.base import Field
-from eventrecon.precision import image_autocast
-from eventrecon.render import compiled_render
-from eventrecon.render.clipping import INSIDE_TOL, NO_CLIPPING, Cylinder
-from eventrecon.render.occupancy_refined import build_grid
+from eventrecon.render.clipping import INSIDE_TOL
+from eventrecon.render.occupancy import OccupancyGrid, OccupancyUpdate
 from eventrecon.render.queries import query_density, query_field
+from eventrecon.render.renderer import Renderer, background_rows, model_device
 from eventrecon.render.samplers import TAU_MAX, pdf_bins, sample_pdf, step_sizes, stratified
 
 if TYPE_CHECKING:
     from eventrecon.render.cameras import Cameras
 
-__all__ = ["TAU_MAX", "render_weights", "composite", "Renderer"]
+__all__ = ["TAU_MAX", "render_weights", "composite", "VolumeRenderer"]
 
 
 def render_weights(sigma: Tensor, delta: Tensor) -> tuple[Tensor, Tensor]:
@@ -99,8 +95,10 @@ def composite(
             "weights": weights, "s": s}
 
 
-class Renderer(nn.Module):
-    """Two-level volume renderer clipped to the cylinder ∩ unit sphere.
+
+class VolumeRenderer(Renderer):
+    """Two-level volume renderer of a :class:`~eventrecon.fields.base.Field`, clipped to
+    the cylinder ∩ unit sphere.
 
     One field serves both levels (supplementary Sec. 9). The coarse level takes
     ``n_coarse`` stratified samples in the clipping interval; the fine level adds
@@ -112,22 +110,24 @@ class Renderer(nn.Module):
     Rays that miss the clipping volume show the background; points outside get ``σ = 0``.
 
     Empty-space skipping (``skip="grid"``): a time-aware
-    :class:`~eventrecon.render.occupancy.OccupancyGrid` (kept up
-    to date from the field by :class:`~eventrecon.render.occupancy.OccupancyUpdate`)
-    says which samples can hold density; the others get ``σ = 0`` without reaching the
-    field, and so do samples outside the cylinder. The coarse samples are evaluated front
-    to back in ``march_chunks`` groups, and a ray stops once its transmittance is below
-    ``stop_transmittance`` (1e-4) at the start of a group (:meth:`_march`); fine samples
-    beyond it are not evaluated either. ``skip="none"`` evaluates every sample of a hit.
+    :class:`~eventrecon.render.occupancy.OccupancyGrid` (kept up to date from the field by
+    :class:`~eventrecon.render.occupancy.OccupancyUpdate`, :meth:`callbacks`) says which
+    samples can hold density; the others get ``σ = 0`` without reaching the field. The
+    coarse samples are taken front to back in ``march_chunks`` groups, and a ray stops
+    once its transmittance is below ``stop_transmittance`` at the start of a group
+    (:meth:`_march`); fine samples beyond that point are not evaluated either.
+    ``skip="none"`` evaluates every sample of a ray that hits the cylinder (the authors'
+    renderer).
 
-    The renderer has no parameters. ``clip_scale`` (in [0, 1]) multiplies the radius of
-    the cylinder outside which density is zero; samples always span the full cylinder
-    (the NGP baseline's annealing sets it through ``pl_module.renderer.clip_scale``).
+    ``clip_scale`` (in [0, 1]) multiplies the radius of the cylinder outside which density
+    is zero; samples always span the full cylinder (the NGP baseline's annealing sets it
+    through ``pl_module.renderer.clip_scale``).
 
     >>> from eventrecon.fields import NeRFField
-    >>> renderer = Renderer(n_coarse=8, n_fine=8)
+    >>> renderer = VolumeRenderer(n_coarse=8, n_fine=8)
     >>> o, d = torch.tensor([[-2.0, -0.25, 0.0]]), torch.tensor([[1.0, 0.0, 0.0]])
-    >>> levels = renderer(NeRFField(depth=2, width=16), o, d, torch.zeros(1, 1), torch.ones(1, 3))
+    >>> levels = renderer.render_rays(NeRFField(depth=2, width=16), o, d, torch.zeros(1, 1),
+    ...                               torch.ones(1, 3))
     >>> [tuple(level["rgb"].shape) for level in levels], tuple(levels[-1]["s"].shape)
     ([(1, 3), (1, 3)], (1, 16))
 
@@ -135,70 +135,66 @@ class Renderer(nn.Module):
         n_coarse: stratified samples per ray (≥ 2; ≥ 3 with a fine level, whose histogram
             has ``n_coarse − 2`` bins).
         n_fine: importance samples per ray (0: one level only).
-        radius, y_min, y_max: the clipping cylinder (:class:`Cylinder`).
+        radius, y_min, y_max, clipping, chunk: see :class:`~eventrecon.render.renderer.Renderer`.
         clip_scale: initial radius factor of the density mask.
-        chunk: rays per chunk in :meth:`render_image`.
-        clipping: ``False`` replaces the cylinder by :data:`~.clipping.NO_CLIPPING`
-            (``r = 1``, ``y ∈ [−1, 1]``: the "w/o clipping" ablation).
         skip: ``"none"`` or ``"grid"`` (empty-space skipping).
-        occupancy: arguments of the grid (``skip="grid"``; ``refine`` set: a
-            :class:`~eventrecon.render.occupancy_refined.RefinedGrid`).
+        occupancy: arguments of the :class:`~eventrecon.render.occupancy.OccupancyGrid`
+            (``skip="grid"``).
         march_chunks, stop_transmittance: front-to-back groups of coarse samples and the
             transmittance below which a ray stops (``skip="grid"``).
-        query_buckets: row counts rounded up to this many sizes per doubling
-            (:func:`~eventrecon.render.queries.padded_rows`; 0: exact; identical results).
         query_rows: most samples per field call without autograd (images, grid updates;
-            0: no limit; the same up to rounding; :mod:`eventrecon.render.queries`).
-        compiled: on a CPU, both levels in compiled loops
-            (:mod:`~eventrecon.render.compiled_render`: the same samples and values to
-            float32 rounding; the weights carry no gradient there); ``False``: PyTorch's
-            passes (the reference).
+            0: no limit; the same values up to rounding, :mod:`eventrecon.render.queries`).
+        query_buckets: row counts of field calls rounded up to this many sizes per doubling
+            (:func:`~eventrecon.render.queries.padded_rows`; 0: exact; the same results).
     """
 
     def __init__(self, n_coarse: int = 64, n_fine: int = 128, radius: float = 0.5,
                  y_min: float = -0.75, y_max: float = 0.25, clip_scale: float = 1.0,
                  chunk: int = 8192, clipping: bool = True, skip: str = "none",
                  occupancy: dict[str, Any] | None = None, march_chunks: int = 4,
-                 stop_transmittance: float = 1e-4, query_buckets: int = 8,
-                 query_rows: int = 16384, compiled: bool = True) -> None:
-        super().__init__()
+                 stop_transmittance: float = 1e-4, query_rows: int = 16384,
+                 query_buckets: int = 8) -> None:
+        super().__init__(radius, y_min, y_max, clipping, chunk)
         if n_fine < 0:
             raise InputError("renderer", "n_fine", "an integer >= 0", n_fine)
         if n_coarse < (3 if n_fine else 2):
             raise InputError("renderer", "n_coarse",
                              f"an integer >= {3 if n_fine else 2} (with n_fine = {n_fine})",
                              n_coarse)
-        if chunk < 1:
-            raise InputError("renderer", "chunk", "an integer >= 1", chunk)
-        for name, value in (("query_buckets", query_buckets), ("query_rows", query_rows)):
+        for name, value in (("query_rows", query_rows), ("query_buckets", query_buckets)):
             if value < 0:
                 raise InputError("renderer", name, "an integer >= 0", value)
         if skip not in ("none", "grid"):
             raise InputError("config", "render.skip", "none or grid", skip)
-        self.n_coarse, self.n_fine, self.chunk = int(n_coarse), int(n_fine), int(chunk)
-        self.cylinder = (Cylinder(radius, y_min, y_max) if clipping
-                         else Cylinder(**NO_CLIPPING))
+        self.n_coarse, self.n_fine = int(n_coarse), int(n_fine)
         self.clip_scale = float(clip_scale)
         self.march_chunks = max(1, int(march_chunks))
         self.stop_transmittance = float(stop_transmittance)
-        self.query_buckets, self.query_rows = int(query_buckets), int(query_rows)
-        self.compiled = bool(compiled)
-        self.occupancy = (build_grid(*self.cylinder.box(), **dict(occupancy or {}))
+        self.query_rows, self.query_buckets = int(query_rows), int(query_buckets)
+        self.occupancy = (OccupancyGrid(*self.cylinder.box(), **dict(occupancy or {}))
                           if skip == "grid" else None)
-        #: the run's mixed dtype for renders without gradients (set by the builder)
-        self.image_dtype: torch.dtype | None = None
-        #: samples sent to the field since the last reset (a plain counter for logging:
-        #: samples per ray is ``field_inputs / rays``; never part of any result)
+        #: samples sent to the field since the last reset (a counter for logging: samples
+        #: per ray is ``field_inputs / rays``; never part of any result)
         self.field_inputs = 0
 
     def extra_repr(self) -> str:
         return (f"n_coarse={self.n_coarse}, n_fine={self.n_fine}, cylinder={self.cylinder}, "
-                f"clip_scale={self.clip_scale}")
+                f"clip_scale={self.clip_scale}, skip={self.occupancy is not None}")
 
     @property
     def skipping(self) -> bool:
         """Whether samples are skipped now (``skip="grid"`` and past its start step)."""
         return self.occupancy is not None and self.occupancy.active
+
+    def callbacks(self, seed: int = 0) -> list[Any]:
+        """The occupancy grid's updates (``skip="grid"``)."""
+        return [OccupancyUpdate(seed)] if self.occupancy is not None else []
+
+    def step_stats(self, n_samples: int) -> dict[str, float]:
+        """``samples_per_ray`` (field evaluations per rendered ray of the last call) and
+        ``clip_scale``."""
+        return {"samples_per_ray": self.field_inputs / max(1, n_samples),
+                "clip_scale": self.clip_scale}
 
     def masked_density(self, field: Field, x: Tensor, t: Tensor) -> Tensor:
         """``[N]`` density (``Field.density_only``) at ``x [N, 3]``, ``t [N, 1]``, zero
@@ -216,24 +212,19 @@ class Renderer(nn.Module):
         n, k = s.shape
         pts = o[:, None, :] + s[..., None] * d[:, None, :]
         inside = self.cylinder.inside(pts, self.clip_scale, tol=INSIDE_TOL)
+        tt = t[:, None, :].expand(n, k, 1).reshape(n * k, 1)
         if keep is None:
             self.field_inputs += n * k
-            sigma, rgb = query_field(field, pts.reshape(n * k, 3),
-                                     t[:, None, :].expand(n, k, 1).reshape(n * k, 1),
-                                     self.query_buckets, self.query_rows)
+            sigma, rgb = query_field(field, pts.reshape(n * k, 3), tt, self.query_buckets,
+                                     self.query_rows)
             return sigma.reshape(n, k) * inside, rgb.reshape(n, k, 3)
         idx = (keep & inside).reshape(-1).nonzero().squeeze(1)
         self.field_inputs += int(idx.numel())
-        tt = t[:, None, :].expand(n, k, 1).reshape(n * k, 1)
         sig_k, rgb_k = query_field(field, pts.reshape(n * k, 3).index_select(0, idx),
                                    tt.index_select(0, idx), self.query_buckets, self.query_rows)
         sigma = pts.new_zeros(n * k, dtype=sig_k.dtype).index_copy(0, idx, sig_k)
         rgb = pts.new_zeros(n * k, 3, dtype=rgb_k.dtype).index_copy(0, idx, rgb_k)
         return sigma.reshape(n, k), rgb.reshape(n, k, 3)
-
-    def _occupied(self, o: Tensor, d: Tensor, t: Tensor, s: Tensor) -> Tensor:
-        """``[n, K]`` bool: samples in occupied cells of the grid."""
-        return self.occupancy.occupied_rays(o, d, t, s)
 
     def march_groups(self, k: int) -> list[tuple[int, int]]:
         """The ``march_chunks`` front-to-back groups ``[a, b)`` of ``k`` coarse samples."""
@@ -244,12 +235,11 @@ class Renderer(nn.Module):
                far: Tensor) -> tuple[Tensor, Tensor]:
         """The coarse samples front to back in ``march_chunks`` groups: occupied samples of
         rays whose transmittance is above ``stop_transmittance`` at a group's start count
-        (``[n, K]`` σ, ``[n, K, 3]`` rgb; 0 for the others). Images call the field group by
-        group; training calls it once on the occupied samples and applies the stops as
-        masks: the same values and gradients, one backward instead of one per group
-        (trained ``make train`` NeRF: 33–35 against 42–45 ms per step)."""
+        (``[n, K]`` σ, ``[n, K, 3]`` rgb; 0 for the others). Without autograd the field is
+        asked group by group; with it, once on all occupied samples, the stops applied as
+        masks afterwards: the same values and gradients, one backward pass."""
         n, k = s.shape
-        keep = self._occupied(o, d, t, s)
+        keep = self.occupancy.occupied_rays(o, d, t, s)
         delta = step_sizes(s, far).float()
         tau = torch.zeros(n, device=s.device)
         groups = self.march_groups(k)
@@ -272,11 +262,7 @@ class Renderer(nn.Module):
     def _render_hit(self, field: Field, o: Tensor, d: Tensor, t: Tensor, bg: Tensor,
                     near: Tensor, far: Tensor, perturb: bool, gen: torch.Generator | None,
                     copies: int = 1) -> list[dict[str, Tensor]]:
-        """Both levels for rays that all hit the clipping volume (on a CPU in compiled
-        loops: :mod:`eventrecon.render.compiled_render`)."""
-        if self.compiled and compiled_render.supported(field, o, d, t, bg):
-            return compiled_render.render_hit(self, field, o, d, t, bg, near, far, perturb,
-                                              gen, copies)
+        """Both levels for rays that all hit the clipping volume."""
         s_c = stratified(near, far, self.n_coarse, perturb, gen, copies)
         skipping = self.skipping
         if skipping:
@@ -294,7 +280,7 @@ class Renderer(nn.Module):
             ends = torch.cat([s_c[:, 1:], far[:, None].to(s_c.dtype)], -1)   # each step's end
             stop_s = torch.where(stopped.any(-1),
                                  ends.gather(1, stopped.float().argmax(-1)[:, None])[:, 0], far)
-            keep_f = self._occupied(o, d, t, s_f) & (s_f <= stop_s[:, None])
+            keep_f = self.occupancy.occupied_rays(o, d, t, s_f) & (s_f <= stop_s[:, None])
         sigma_f, rgb_f = self._query(field, o, d, t, s_f, keep_f)
         s_all, order = torch.sort(torch.cat([s_c, s_f], dim=-1), dim=-1)
         sigma = torch.cat([sigma_c, sigma_f], dim=-1).gather(1, order)
@@ -302,9 +288,9 @@ class Renderer(nn.Module):
         levels.append(composite(sigma, rgb, s_all, far, bg))
         return levels
 
-    def forward(self, field: Field, o: Tensor, d: Tensor, t: Tensor, bg: Tensor,
-                perturb: bool = False, gen: torch.Generator | None = None,
-                copies: int = 1) -> list[dict[str, Tensor]]:
+    def render_rays(self, field: Field, o: Tensor, d: Tensor, t: Tensor, bg: Tensor,
+                    perturb: bool = False, gen: torch.Generator | None = None,
+                    copies: int = 1) -> list[dict[str, Tensor]]:
         """Render rays at one time each.
 
         Args:
@@ -332,7 +318,7 @@ class Renderer(nn.Module):
             raise InputError("renderer", "o/d/t/bg", "shapes [N,3], [N,3], [N,1], [N,3]",
                              f"{tuple(o.shape)}, {tuple(d.shape)}, {tuple(t.shape)}, "
                              f"{tuple(bg.shape)}")
-        near, far, hit = self.cylinder.ray_interval(o, d, compiled=self.compiled)
+        near, far, hit = self.cylinder.ray_interval(o, d)
         idx = hit.nonzero().squeeze(1)
         if idx.numel() == n:
             return self._render_hit(field, o, d, t, bg, near, far, perturb, gen, copies)
@@ -346,53 +332,40 @@ class Renderer(nn.Module):
         return [{key: missed[key].expand(n, *value.shape[1:]).index_put((idx,), value)
                  for key, value in level.items()} for level in sub]
 
-    def image_autocast(self, device: torch.device) -> contextlib.AbstractContextManager:
-        """:func:`~eventrecon.precision.image_autocast` of :attr:`image_dtype` on ``device``."""
-        return image_autocast(self.image_dtype, device)
+    def forward(self, model: Field, cams: Cameras, view: Tensor, uv: Tensor, t: Tensor,
+                bg: Tensor, perturb: bool = False, gen: torch.Generator | None = None,
+                copies: int = 1) -> list[dict[str, Tensor]]:
+        """The protocol's call (:meth:`Renderer.forward`): the rays through ``uv`` of the
+        cameras ``view`` (computed once per block of ``copies``), then :meth:`render_rays`."""
+        n = view.shape[0]
+        if copies < 1 or n % copies:
+            raise InputError("renderer", "copies", f"a divisor of the sample count {n}", copies)
+        m = n // copies
+        o, d = cams.rays(view[:m].cpu(), uv[:m].cpu())
+        o, d = o.to(t.device).repeat(copies, 1), d.to(t.device).repeat(copies, 1)
+        self.field_inputs = 0
+        return self.render_rays(model, o, d, t, bg, perturb, gen, copies)
 
     @torch.no_grad()
-    def render_image(self, field: Field, cams: Cameras, view: int, t: float,
+    def render_image(self, model: Field, cams: Cameras, view: int, t: float,
                      bg_image: Tensor | float | None = None, chunk: int | None = None
                      ) -> dict[str, Tensor]:
-        """Render a full image of one camera at one time (final level, no jitter).
-
-        Args:
-            field: the field.
-            cams: :class:`eventrecon.render.cameras.Cameras` (rays with distortion).
-            view: camera index.
-            t: normalised time.
-            bg_image: ``[H, W, 3]`` linear background, a ``[3]`` colour, a float, or
-                ``None`` for the method's grey (:data:`eventrecon.colour.GREY_LINEAR`).
-            chunk: rays per chunk (default ``self.chunk``).
-
-        Returns:
-            dict with ``rgb [H, W, 3]``, ``opacity [H, W]``, ``depth [H, W]`` (float32,
-            on the field's device).
-        """
-        device = next(itertools.chain(field.parameters(), field.buffers()),
-                      torch.empty(0)).device
+        """:meth:`Renderer.render_image` through the view's cached rays
+        (:meth:`~eventrecon.render.cameras.Cameras.image_rays`)."""
+        device = model_device(model)
         h, w = cams.height, cams.width
         o, d = cams.image_rays(view)
         o, d = o.to(device), d.to(device)
-        bg = torch.as_tensor(GREY_LINEAR if bg_image is None else bg_image,
-                             dtype=torch.float32, device=device)
-        if bg.shape == (h, w, 3):
-            bg = bg.reshape(h * w, 3)
-        elif bg.numel() in (1, 3):
-            bg = bg.reshape(1, -1).expand(h * w, 3)
-        else:
-            raise InputError("render_image", "bg_image", f"[{h}, {w}, 3], [3] or a float",
-                             tuple(bg.shape))
+        bg = background_rows(bg_image, h, w, device)
         tt = torch.full((h * w, 1), float(t), device=device)
         chunk = int(chunk or self.chunk)
         parts: dict[str, list[Tensor]] = {"rgb": [], "opacity": [], "depth": []}
         with self.image_autocast(device):
             for i in range(0, h * w, chunk):
                 j = slice(i, i + chunk)
-                level = self.forward(field, o[j], d[j], tt[j], bg[j], perturb=False)[-1]
+                level = self.render_rays(model, o[j], d[j], tt[j], bg[j])[-1]
                 for key in parts:
                     parts[key].append(level[key].float())
         return {"rgb": torch.cat(parts["rgb"]).reshape(h, w, 3),
                 "opacity": torch.cat(parts["opacity"]).reshape(h, w),
                 "depth": torch.cat(parts["depth"]).reshape(h, w)}
-

@@ -120,13 +120,8 @@ def method_notes(runs: Sequence[Run]) -> list[str]:
                                                                   for s in sizes) + ".")
     skips = {r.record.get("skip") for r in runs if r.record.get("skip")}
     if "grid" in skips:
-        refined = sorted({str(r.record["skip_refine"]) for r in runs
-                          if r.record.get("skip_refine")})
         notes.append("Samples in cells the occupancy grid marks empty are not evaluated "
-                     "(render.skip=grid; see docs/results for its agreement with skip=none)"
-                     + (", the grid refined where occupied in some runs "
-                        "(render.occupancy.refine=" + ", ".join(refined) + ")"
-                        if refined else "") + ".")
+                     "(render.skip=grid).")
     decays = sorted({float(r.record["lr_end_factor"]) for r in runs
                      if r.record.get("lr_end_factor") not in (None, 1.0)})
     if decays:

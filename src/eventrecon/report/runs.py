@@ -161,12 +161,12 @@ def collect_runs(dirs: Iterable[str | Path]) -> list[Run]:
 
 #: A run's job: the fields of its record that say what was trained (not how it went).
 JOB_KEYS: tuple[str, ...] = ("scene", "model", "loss", "views", "fps", "seed", "tag",
-                             "schedule", "skip", "skip_refine", "sizing", "lr_end_factor",
+                             "schedule", "skip", "sizing", "lr_end_factor",
                              "lr_warmup", "lr_decay_start", "betas_power",
                              "max_steps")
 #: Values a record written before its key existed stands for.
 _JOB_DEFAULTS: dict[str, Any] = {"lr_end_factor": 1.0, "lr_warmup": 0, "lr_decay_start": 0.0,
-                                 "betas_power": 1.0, "skip_refine": None}
+                                 "betas_power": 1.0}
 
 
 def supersedes(new: Run, old: Run) -> bool:
