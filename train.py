@@ -5,7 +5,7 @@
     python train.py -m experiment=table3 scale=cpu   # a sweep that regenerates Tab. 3
     python train.py data.root=/path/to/scene         # a dataset in the published layout
 
-The run reads top to bottom in :func:`eventrecon.runner.run`: data → field → module →
+The run reads top to bottom in :func:`eventrecon.engine.runner.run`: data → field → module →
 callbacks → logger → trainer → fit → evaluate. Held-out PSNR / SSIM / LPIPS are printed
 at the end and saved to ``metrics.json`` in the run folder.
 
@@ -41,10 +41,10 @@ def _pick_trainer_preset(argv: list[str]) -> list[str]:
 
 @hydra.main(config_path="conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float | None:
-    from eventrecon.errors import InputError
-    from eventrecon.module import NonFiniteLossError
-    from eventrecon.records import finished_metrics
-    from eventrecon.runner import run
+    from eventrecon.common.errors import InputError
+    from eventrecon.engine.module import NonFiniteLossError
+    from eventrecon.engine.runner import run
+    from eventrecon.results.records import finished_metrics
 
     _one_log_stream()
 
@@ -79,7 +79,7 @@ def main(cfg: DictConfig) -> float | None:
         log.info("segment %s trained; the run is evaluated once segments %s are trained too",
                  cfg.data.segment, metrics["missing_segments"])
         return None
-    from eventrecon.summary import format_summary
+    from eventrecon.evaluation.summary import format_summary
 
     emit = log.warning if metrics["status"] == "collapsed" else log.info
     emit("%s", format_summary(metrics, out_dir))
@@ -144,8 +144,8 @@ def _share_cores_between_parallel_jobs() -> None:
 
 def _record_failure(cfg: DictConfig, out_dir: Path, err: BaseException) -> None:
     """Write ``metrics.json`` with ``status: failed`` so the report shows the failure."""
-    from eventrecon.build import planned_run_info
-    from eventrecon.records import METHOD_VERSION, write_metrics
+    from eventrecon.engine.build import planned_run_info
+    from eventrecon.results.records import METHOD_VERSION, write_metrics
 
     try:
         info = planned_run_info(cfg)
@@ -161,7 +161,7 @@ def _record_failure(cfg: DictConfig, out_dir: Path, err: BaseException) -> None:
 
 
 if __name__ == "__main__":
-    from eventrecon.overrides import report_bad_overrides
+    from eventrecon.config.overrides import report_bad_overrides
 
     sys.argv = [sys.argv[0], *_pick_trainer_preset(sys.argv[1:])]
     report_bad_overrides()

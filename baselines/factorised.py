@@ -31,7 +31,7 @@ from torch import Tensor
 from baselines.grids import FactorGrids, box_normalize
 from baselines.heads import activate, activate_density
 from baselines.schedules import GridGrowth, GrowthPlan
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.kernels import resolve, use_kernel
 

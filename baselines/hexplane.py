@@ -29,7 +29,7 @@ from torch import Tensor
 
 from baselines.factorised import FactorisedField
 from baselines.schedules import GrowthPlan
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.kernels import factor_grids
 
 #: (spatial plane axes, space-time plane axes as the authors sample them, line axis):

@@ -45,7 +45,7 @@ from torch import Tensor, nn
 
 from baselines.heads import NGPDecoder
 from baselines.schedules import CylinderAnneal
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.kernels import hash_grid, resolve, use_kernel
 

@@ -2,7 +2,7 @@
 
 Both are written in training steps, as the authors' code runs them (the growth over its
 first ``steps`` steps, the NGP cylinder over the first 10⁴); a config may compress them
-for short runs (``trainer.schedule=compressed``, see :mod:`eventrecon.config`). Both are
+for short runs (``trainer.schedule=compressed``, see :mod:`eventrecon.config.resolvers`). Both are
 *stateless*: the target (resolution, clip scale) is a function of
 ``trainer.global_step``, so a run resumed from a checkpoint continues the schedule
 exactly.

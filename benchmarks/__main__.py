@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 
 import eventrecon
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 log = logging.getLogger("benchmarks")
 

@@ -124,10 +124,10 @@ def real_steps(arch: dict, rays: int | None, data_dir: str, variants: list[str],
     """The whole-step functions of ``variants`` (module docstring, item 2)."""
     from hydra import compose, initialize_config_dir
 
-    from eventrecon import build
     from eventrecon.data.batcher import Segment
-    from eventrecon.losses import total_loss
-    from eventrecon.module import EventNeRFModule, step_generator
+    from eventrecon.engine import build
+    from eventrecon.engine.losses import total_loss
+    from eventrecon.engine.module import EventNeRFModule, step_generator
 
     over = ["model=nerf", "render.skip=none", "model.anneal_steps=0", f"data_dir={data_dir}",
             f"model.depth={arch['depth']}", f"model.width={arch['width']}",

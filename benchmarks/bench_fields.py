@@ -45,9 +45,9 @@ from torch import Tensor
 from baselines import NGPField, hash_encode_reference
 from baselines.factorised import FactorisedField
 from baselines.grids import sample_grid_reference
-from eventrecon import build
+from eventrecon.engine import build
+from eventrecon.engine.module import adamw_fused
 from eventrecon.fields.base import Field
-from eventrecon.module import adamw_fused
 from eventrecon.render.clipping import Cylinder
 
 log = logging.getLogger("benchmarks.fields")

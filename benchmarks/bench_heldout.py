@@ -18,7 +18,7 @@ run's own metric (all ground-truth times, every view). A gain that drops from th
 training poses to the held-out pose is what the unseen viewpoint costs; a drop from frame
 times to mid-times is what interpolating in time costs.
 
-PSNR as the runs report it (:func:`eventrecon.metrics.psnr`: the mean over images of
+PSNR as the runs report it (:func:`eventrecon.evaluation.metrics.psnr`: the mean over images of
 −10 log10 MSE, on the 8-bit-encoded images in [0, 1]).
 """
 
@@ -33,14 +33,15 @@ import numpy as np
 import torch
 
 from eventrecon import TIME_SPAN
-from eventrecon.build import load_dataset, load_segment, scene_properties
-from eventrecon.colour import linear_to_srgb
+from eventrecon.common.colour import linear_to_srgb
 from eventrecon.data.batcher import background_linear
 from eventrecon.data.selection import heldout_split
 from eventrecon.data.types import SplitData
-from eventrecon.evaluate import encode, render_heldout, run_config
-from eventrecon.metrics import psnr
-from eventrecon.segments import run_segments
+from eventrecon.engine.build import load_dataset, load_segment, scene_properties
+from eventrecon.engine.run_folder import run_config
+from eventrecon.engine.segments import run_segments
+from eventrecon.evaluation.heldout import encode, render_heldout
+from eventrecon.evaluation.metrics import psnr
 from eventrecon.sim.raytrace import PixelRenderer
 from eventrecon.sim.spec import build_cameras, parse_spec
 

@@ -27,8 +27,8 @@ the grid come from the run's last checkpoint of its first segment (``seg0``), wi
 run's own config and data properties (this checkout's code only; ``--override`` and
 ``--repo`` do not apply).
 
-The code of older commits builds its field and renderer through ``eventrecon.runner``
-instead of ``eventrecon.build``; both are handled here. That code also fails on a chunk
+The code of older commits builds its field and renderer through ``eventrecon.engine.runner``
+instead of ``eventrecon.engine.build``; both are handled here. That code also fails on a chunk
 of rays none of which meets the clipping cylinder (the field is asked for zero rows), so
 such a call returns empty outputs here without asking the field.
 """
@@ -55,10 +55,10 @@ HERE = Path(__file__).resolve().parent
 
 def _config(repo: Path, overrides: list[str], run: Path | None) -> DictConfig:
     """The run's saved config (``run/.hydra/config.yaml``) or the default job's."""
-    if run is not None:          # not eventrecon.evaluate.run_config: older commits lack it
+    if run is not None:          # read directly: older commits lack run_folder.run_config
         path = run / ".hydra" / "config.yaml"
         if not path.is_file():
-            from eventrecon.errors import InputError
+            from eventrecon.common.errors import InputError
 
             raise InputError(path, "<file>", "the run's saved Hydra config")
         return OmegaConf.load(path)
@@ -70,19 +70,19 @@ def _field_and_renderer(cfg: DictConfig, run: Path | None) -> tuple[Any, Any]:
     """Field and renderer of ``cfg``, by the imported code's own builders (a run's: its
     ``seg0`` checkpoint, with the cylinder of its data)."""
     if run is not None:
-        from eventrecon import build
+        from eventrecon.engine import build
         props = build.scene_properties(cfg, build.load_dataset(cfg))
         return build.load_segment(cfg, props, run / "seg0")
     props = SimpleNamespace(cylinder=dict(cfg.scene.cylinder))
-    if "render" in cfg:                    # this layout: a render group, eventrecon.build
-        from eventrecon import build
-        from eventrecon.precision import run_precision
+    if "render" in cfg:                    # this layout: a render group, eventrecon.engine.build
+        from eventrecon.config.precision import run_precision
+        from eventrecon.engine import build
         field = build.build_field(cfg.model)
         renderer = build.build_renderer(cfg.render, props, run_precision(cfg))
         field.set_scene_box(*renderer.cylinder.box())
         return field, renderer
     # the older layout, e.g. issue 12's filing commit
-    from eventrecon import runner
+    from eventrecon.engine import runner
     return runner.build_field(cfg.model), runner.build_renderer(cfg, props)
 
 

@@ -4,7 +4,7 @@
     python -m benchmarks step --only ngp --profile # where the time of one step goes
     python -m benchmarks step --only hexplane hexplane_torch   # the kernel against torch
 
-A *real* step is what :class:`eventrecon.module.EventNeRFModule` does each iteration:
+A *real* step is what :class:`eventrecon.engine.module.EventNeRFModule` does each iteration:
 draw the batch (window, balanced rays, event lookups, reference frame), render every
 ray at ``t0, t1, t_ref`` with the coarse and fine passes, the four losses, backward and
 the optimiser step. Its throughput is counted in the samples the field actually
@@ -44,10 +44,10 @@ from pathlib import Path
 import torch
 from hydra import compose, initialize_config_dir
 
-from eventrecon import build
 from eventrecon.data.batcher import Segment
-from eventrecon.losses import total_loss
-from eventrecon.module import step_generator
+from eventrecon.engine import build
+from eventrecon.engine.losses import total_loss
+from eventrecon.engine.module import step_generator
 
 log = logging.getLogger("benchmarks.step")
 CONF = str(Path(__file__).resolve().parents[1] / "conf")

@@ -8,7 +8,7 @@
 For every backbone (``nerf``, ``ngp``, ``tensorf_cp``, ``hexplane``) and every
 ``render.skip`` (``none``, ``grid``), in one process:
 
-1. **Training** (``eventrecon.runner.run``) on ``scene=spheres`` at ``scale=cpu`` (CPU: 256
+1. **Training** (``eventrecon.engine.runner.run``) on ``scene=spheres`` at ``scale=cpu`` (CPU: 256
    rays, 32 + 32 samples, the CPU sizes, warm-up schedules compressed to the preset's
    1000 steps and kept there) or ``trainer=paper`` (``--device cuda``: 1024 rays, 64 + 128
    samples, the 8×256 MLP and the configs' own sizes, the paper's schedules), until
@@ -59,11 +59,11 @@ import numpy as np
 import torch
 
 from benchmarks.zoo_run import STATS_FILE, compose_run, time_render, time_steps
-from eventrecon import build, runner
 from eventrecon.data.selection import training_split
-from eventrecon.records import read_curve_rows
+from eventrecon.engine import build, runner
+from eventrecon.engine.segments import run_segments, run_window
 from eventrecon.report.curves import time_to_level, trailing_median
-from eventrecon.segments import run_segments, run_window
+from eventrecon.results.records import read_curve_rows
 
 log = logging.getLogger("benchmarks.zoo")
 

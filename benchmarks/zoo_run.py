@@ -28,9 +28,9 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from torch import Tensor
 
 from benchmarks.bench_image import time_images
-from eventrecon.callbacks import HeldOutMonitor
-from eventrecon.losses import total_loss
-from eventrecon.module import EventNeRFModule, adamw_fused, step_generator
+from eventrecon.engine.callbacks import HeldOutMonitor
+from eventrecon.engine.losses import total_loss
+from eventrecon.engine.module import EventNeRFModule, adamw_fused, step_generator
 
 log = logging.getLogger("benchmarks.zoo")
 CONF = str(Path(__file__).resolve().parents[1] / "conf")

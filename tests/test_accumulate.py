@@ -7,7 +7,7 @@ import pytest
 import torch
 from scipy.signal import lfilter
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.events.accumulate import DecayedEvents, decayed_prefix
 from eventrecon.events.bayer import bayer_mask, bayer_mask_at
 from eventrecon.events.stream import EventStream

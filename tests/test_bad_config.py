@@ -1,6 +1,6 @@
 """Bad configuration and scene input: one line naming the key and the expectation.
 
-In-process cases go through :func:`eventrecon.runner.run` with the composed Hydra config
+In-process cases go through :func:`eventrecon.engine.runner.run` with the composed Hydra config
 (exactly what ``train.py`` calls) and must raise :class:`InputError` whose message is a
 single line matching ``<where>: <key>: expected <expectation>, got <value>``. A few cases
 go through ``python train.py`` to check what a user sees: exit status 2 and one
@@ -21,9 +21,10 @@ import pytest
 from integration import TINY, TINY_NERF, tiny_config
 from omegaconf.errors import InterpolationResolutionError
 
-from eventrecon import build, runner
-from eventrecon.errors import InputError
-from eventrecon.segments import resolve_segments, segment_steps
+from eventrecon.common.errors import InputError
+from eventrecon.data.segments import resolve_segments
+from eventrecon.engine import build, runner
+from eventrecon.engine.segments import segment_steps
 from eventrecon.sim.pipeline import ensure_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -106,7 +107,7 @@ CASES = {
                      r"got /nonexistent/x\.ckpt$"),
 }
 
-# keys checked before any data work (eventrecon.run_keys.check_run_keys): before these
+# keys checked before any data work (eventrecon.engine.run_keys.check_run_keys): before these
 # checks a typo gave a traceback from deep inside (Lightning's max_steps and precision
 # checks, AdamW's, int('abc'), an IndexError) or surfaced only after the data was read
 EARLY = {
@@ -189,7 +190,7 @@ def test_whole_numbers_written_as_floats_and_an_empty_window_still_run(data_dir:
     """Hydra parses ``1e3`` as a float: a whole number of steps stays accepted (``int()``
     took it before these checks); ``data.window=[]`` is no window, as before; a null
     precision is Lightning's default."""
-    from eventrecon.run_keys import check_run_keys
+    from eventrecon.engine.run_keys import check_run_keys
 
     cfg = tiny_config(data_dir, "trainer.max_steps=1e3", "data.window=[]",
                       "trainer.lightning.precision=null")

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from test_layout import write_split
 
+from eventrecon.common.errors import InputError
 from eventrecon.data.layout import read_dataset, read_split
-from eventrecon.errors import InputError
 
 
 def _npz(path: Path, **changes) -> None:

@@ -455,7 +455,7 @@ def test_model_configs_are_the_authors(name, cls, checks, lr):
     assert (model.optim.lr, model.optim.weight_decay) == (lr, 0.1)  # AdamW wd 0.1 for all
     for key, val in checks.items():
         assert OmegaConf.to_container(model)[key] == val
-    from eventrecon.build import build_field
+    from eventrecon.engine.build import build_field
     f = build_field(cpu)  # the CPU size builds quickly
     s, c = f(*_points(10, 0))
     assert s.shape == (10,) and c.shape == (10, 3)

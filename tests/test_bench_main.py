@@ -59,14 +59,14 @@ def test_running_every_benchmark_skips_those_that_read_finished_runs(caplog, mon
 def test_a_run_folder_without_a_saved_config_is_one_error_line(caplog, tmp_path) -> None:
     """``python -m benchmarks heldout DIR`` on a folder that is not a run: one line
     naming the missing ``.hydra/config.yaml`` and exit status 2, no traceback
-    (``eventrecon.evaluate.run_config``); ``image --run`` raises the same error."""
+    (``eventrecon.engine.run_folder.run_config``); ``image --run`` raises the same error."""
     import logging
 
     import pytest
 
     import benchmarks.__main__ as bm
     from benchmarks import bench_image
-    from eventrecon.errors import InputError
+    from eventrecon.common.errors import InputError
 
     level = logging.getLogger("eventrecon").level
     try:

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from eventrecon.checkpointing import atomic_write_json, atomic_write_with, remove_stale_temporaries
+from eventrecon.common.files import atomic_write_json, atomic_write_with, remove_stale_temporaries
 
 
 def test_failed_write_keeps_the_old_file_and_no_temporary(tmp_path: Path):
@@ -38,7 +38,7 @@ def test_sigkill_during_a_write_leaves_the_target_intact_and_a_removable_tempora
     # a writer that blocks half-way through its write until it is killed
     code = (
         "import sys, time, pathlib\n"
-        "from eventrecon.checkpointing import atomic_write_with\n"
+        "from eventrecon.engine.checkpointing import atomic_write_with\n"
         "def w(f):\n"
         "    f.write(b'new, half written'); f.flush()\n"
         f"    pathlib.Path({str(started)!r}).touch()\n"

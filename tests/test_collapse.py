@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 from integration import TINY, tiny_config
 
-from eventrecon import runner
-from eventrecon.collapse import CollapseRule, collapse_reason, opacity_collapsed
+from eventrecon.engine import runner
+from eventrecon.engine.collapse import CollapseRule, collapse_reason, opacity_collapsed
 from eventrecon.report import build_report
 
 

@@ -64,11 +64,11 @@ def test_compressed_schedules_are_a_named_option_and_the_ramp_is_never_compresse
     assert _compose("scale=cpu", "model=ngp").model.anneal_steps == 67  # 1e4 of 150k
     assert _compose("scale=cpu", "model=tensorf_cp").model.growth_steps == 67
     assert cpu.loss.sparsity_ramp == 30000
-    from eventrecon.losses import sparsity_weight
+    from eventrecon.engine.losses import sparsity_weight
     assert sparsity_weight(1000, cpu.loss.lam_sparsity, cpu.loss.sparsity_ramp) == (
         pytest.approx(1e-2 * (1 - math.exp(-1000 / 30000)), rel=1e-12))
-    from eventrecon.build import build_field
-    from eventrecon.errors import InputError
+    from eventrecon.common.errors import InputError
+    from eventrecon.engine.build import build_field
 
     with pytest.raises(InputError, match="trainer.schedule: expected paper or compressed, "
                                          "got squeezed$"):

@@ -13,9 +13,10 @@ import dv_processing as dv  # a test dependency ([test] extra): a missing one fa
 import numpy as np
 import pytest
 
-from eventrecon.convert import convert_aedat4, main
+from eventrecon.common.errors import InputError
+from eventrecon.convert import main
 from eventrecon.data.layout import read_split
-from eventrecon.errors import InputError
+from eventrecon.data.recordings import convert_aedat4
 from eventrecon.render.cameras import cameras_to_camdict, ring_rig
 
 W, H = 40, 30

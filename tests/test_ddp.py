@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 from integration import TINY, TINY_NERF
 
-from eventrecon.module import step_generator
+from eventrecon.engine.module import step_generator
 
 ROOT = Path(__file__).resolve().parents[1]
 

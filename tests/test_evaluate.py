@@ -11,8 +11,8 @@ import pytest
 from integration import tiny_config
 from omegaconf import OmegaConf
 
-from eventrecon import build, runner
 from eventrecon.data import selection
+from eventrecon.engine import build, runner
 from eventrecon.evaluate import main
 
 
@@ -44,10 +44,10 @@ def test_background_only_score_is_what_an_empty_field_renders(run_dir: Path):
     import numpy as np
     import torch
 
-    from eventrecon.colour import srgb_to_linear
-    from eventrecon.evaluate import evaluate_heldout, render_heldout
+    from eventrecon.common.colour import srgb_to_linear
+    from eventrecon.data.segments import resolve_segments
+    from eventrecon.evaluation.heldout import evaluate_heldout, render_heldout
     from eventrecon.fields.base import Field
-    from eventrecon.segments import resolve_segments
 
     cfg = OmegaConf.load(run_dir / ".hydra" / "config.yaml")
     ds = build.load_dataset(cfg)
@@ -102,7 +102,7 @@ def test_images_render_in_the_precision_the_run_trained_with(run_dir: Path, tmp_
     # the record's precision, not what `auto` resolves to on the evaluating machine
     import shutil
 
-    from eventrecon import precision
+    from eventrecon.config import precision
 
     monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda: True)
     for trained, autocast in (("32-true", False), ("bf16-mixed", True)):

@@ -21,7 +21,7 @@ import eventrecon.kernels.factor_grids as factor_grids
 from baselines import HexPlaneField, TensoRFCPField
 from baselines.factorised import FEATURES, FactorisedField
 from baselines.grids import channels_last, sample_grid_reference, vertex_coords
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.kernels.factor_grids import (
     cp_rank_sum,
     cp_unsupported,
@@ -536,7 +536,7 @@ def test_moments_loaded_in_another_layout_take_their_parameters_layout():
     contiguous tensors."""
     import copy
 
-    from eventrecon.module import state_like_params
+    from eventrecon.engine.module import state_like_params
 
     g = torch.Generator().manual_seed(4)
     field = HexPlaneField(rank=2, resolution=(6, 6, 6, 5))

@@ -12,7 +12,7 @@ import torch
 
 import eventrecon.kernels.hash_grid as hash_grid
 from baselines.ngp import HashEncoding
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.kernels.jit import numba_threads, parts
 from eventrecon.sim.pipeline import torch_threads
 

@@ -15,7 +15,7 @@ from torch import Tensor, nn
 import eventrecon.kernels.factor_grids as factor_grids
 import eventrecon.kernels.hash_grid as hash_grid
 from baselines import HashEncoding, HexPlaneField, NGPField, TensoRFCPField
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.kernels import IMPLEMENTATIONS, resolve, use_kernel
 from eventrecon.sim.pipeline import torch_threads
 
@@ -224,7 +224,7 @@ def test_the_config_key_reaches_the_field(name, monkeypatch):
     error naming the key."""
     from hydra import compose, initialize_config_dir
 
-    from eventrecon.build import build_field
+    from eventrecon.engine.build import build_field
 
     assert "\nimplementation: auto " in (CONF / "model" / f"{name}.yaml").read_text()
     models = {}

@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 import torch
 
-from eventrecon import build
+from eventrecon.common.errors import InputError
 from eventrecon.data.batcher import RayBatcher, Segment
 from eventrecon.data.layout import read_dataset, read_split
 from eventrecon.data.selection import select_views
 from eventrecon.data.views import view_key
-from eventrecon.errors import InputError
+from eventrecon.engine import build
 from eventrecon.render.cameras import load_camdict
 from eventrecon.render.distortion import distort, undistort
 
@@ -311,7 +311,7 @@ def test_independent_dataset_trains(scene, tmp_path: Path):
     steps, finite losses, evaluated on its validation split."""
     from integration import TINY, TINY_NERF, tiny_config
 
-    from eventrecon import runner
+    from eventrecon.engine import runner
 
     root, _ = scene
     cfg = tiny_config(tmp_path / "unused", "data=real", f"data.root={root}",
@@ -332,7 +332,7 @@ def test_dataset_without_meta_needs_its_properties(scene, tmp_path: Path):
     """A published scene has no meta.json: eps/decay/Bayer must come from the config."""
     from integration import tiny_config
 
-    from eventrecon import runner
+    from eventrecon.engine import runner
 
     root, _ = scene
     (root / "meta.json").unlink()
@@ -354,7 +354,7 @@ def test_training_split_without_events_or_frames_is_one_line(scene, tmp_path: Pa
 
     from integration import tiny_config
 
-    from eventrecon import runner
+    from eventrecon.engine import runner
 
     root, _ = scene
     shutil.rmtree(root / "train" / missing)

@@ -9,9 +9,9 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from eventrecon.common.errors import InputError
 from eventrecon.data.layout import read_split
 from eventrecon.data.legacy import is_legacy_split, read_legacy_split, slerp_c2w
-from eventrecon.errors import InputError
 
 N_POSES, H, W = 41, 12, 16
 

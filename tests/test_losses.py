@@ -8,8 +8,8 @@ from dataclasses import replace
 import pytest
 import torch
 
-from eventrecon.errors import InputError
-from eventrecon.losses import (
+from eventrecon.common.errors import InputError
+from eventrecon.engine.losses import (
     LossConfig,
     acc_loss,
     event_loss,

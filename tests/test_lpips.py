@@ -14,15 +14,16 @@ import numpy as np
 import pytest
 import torch
 
-from eventrecon import lpips_alex, metrics
-from eventrecon.lpips_alex import (
+from eventrecon.evaluation import lpips as lpips_alex
+from eventrecon.evaluation import metrics
+from eventrecon.evaluation.lpips import (
     ALEXNET_FILE,
     AlexNetTrunk,
     LPIPSAlex,
     LPIPSUnavailable,
     lpips_heads_path,
 )
-from eventrecon.metrics import evaluate_images
+from eventrecon.evaluation.metrics import evaluate_images
 
 
 @pytest.fixture(autouse=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eventrecon.memory import peak_mb, reset_peak
+from eventrecon.engine.memory import peak_mb, reset_peak
 
 
 def test_peak_follows_an_allocation_and_resets() -> None:

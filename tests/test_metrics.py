@@ -7,8 +7,8 @@ import pytest
 import torch
 from numpy.lib.stride_tricks import sliding_window_view
 
-from eventrecon.errors import InputError
-from eventrecon.metrics import color_correct, evaluate_images, psnr, ssim
+from eventrecon.common.errors import InputError
+from eventrecon.evaluation.metrics import color_correct, evaluate_images, psnr, ssim
 
 
 def test_psnr_known_answers():

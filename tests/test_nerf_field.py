@@ -11,7 +11,7 @@ import torch
 from omegaconf import OmegaConf
 from torch import nn
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.fields import Field, NeRFField
 from eventrecon.fields.encoding import BandAnnealing, PositionalEncoding, band_window
 from eventrecon.render.volume import VolumeRenderer
@@ -187,7 +187,7 @@ def test_the_layers_are_modules_whose_hooks_run() -> None:
 
 
 def test_config_instantiates_the_field_and_carries_the_optimiser() -> None:
-    from eventrecon.build import build_field
+    from eventrecon.engine.build import build_field
 
     cfg = OmegaConf.load(CONF)
     assert open(CONF).readline().startswith("# python train.py model=nerf")

@@ -1,4 +1,4 @@
-"""Overrides Hydra fails to apply: the override named in one line (eventrecon.overrides)."""
+"""Overrides Hydra fails to apply: the override named in one line (eventrecon.config.overrides)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,12 @@ from hydra._internal.config_loader_impl import ConfigLoaderImpl
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
-from eventrecon.overrides import bad_override, list_node, override_in_flight, report_bad_overrides
+from eventrecon.config.overrides import (
+    bad_override,
+    list_node,
+    override_in_flight,
+    report_bad_overrides,
+)
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 

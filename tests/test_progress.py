@@ -15,12 +15,12 @@ import torch
 from integration import tiny_config
 from omegaconf import OmegaConf
 
-from eventrecon import progress as progress_mod
-from eventrecon import runner
-from eventrecon.progress import Progress
-from eventrecon.records import run_info
-from eventrecon.summary import format_summary
-from eventrecon.taskprogress import TaskProgress
+from eventrecon.common.progress import TaskProgress
+from eventrecon.engine import progress as progress_mod
+from eventrecon.engine import runner
+from eventrecon.engine.progress import Progress
+from eventrecon.evaluation.summary import format_summary
+from eventrecon.results.records import run_info
 
 LINE = re.compile(r"^segment 2/5  step (\d+)/(\d+) \((\d+)%\)  loss (\S+)  (\S+) s/it  "
                   r"eta (\S+)  psnr (.+)$")
@@ -40,7 +40,7 @@ def test_log_lines_carry_every_field_and_come_every_30_s(monkeypatch, caplog):
     monitor = SimpleNamespace(last_psnr=None)
     cb = Progress(1, 5, mode="log", every_s=30.0, monitor=monitor)
     trainer = SimpleNamespace(is_global_zero=True, global_step=0, max_steps=1000)
-    caplog.set_level(logging.INFO, logger="eventrecon.progress")
+    caplog.set_level(logging.INFO, logger="eventrecon.engine.progress")
     cb.on_train_start(trainer, None)
     times = []
     for step in range(1, 1001):
@@ -69,7 +69,7 @@ def test_a_resumed_segment_counts_its_rate_from_the_resumed_step(monkeypatch, ca
     monkeypatch.setattr(progress_mod.time, "perf_counter", clock)
     cb = Progress(1, 5, mode="log", every_s=1.0)
     trainer = SimpleNamespace(is_global_zero=True, global_step=600, max_steps=1000)
-    caplog.set_level(logging.INFO, logger="eventrecon.progress")
+    caplog.set_level(logging.INFO, logger="eventrecon.engine.progress")
     cb.on_train_start(trainer, None)
     clock.now += 2.0
     trainer.global_step = 610
@@ -81,7 +81,7 @@ def test_a_resumed_segment_counts_its_rate_from_the_resumed_step(monkeypatch, ca
 def test_task_progress_lines_for_long_work(monkeypatch, caplog):
     clock = _Clock()
     monkeypatch.setattr(progress_mod.time, "perf_counter", clock)
-    caplog.set_level(logging.INFO, logger="eventrecon.progress")
+    caplog.set_level(logging.INFO, logger="eventrecon.engine.progress")
     p = TaskProgress("held-out renders", 11, every_s=30.0)
     for _ in range(11):
         clock.now += 20.0  # 20 s an image: a line every second image, and the last
@@ -111,7 +111,7 @@ def test_runs_on_a_dataset_folder_are_named_after_the_dataset(tmp_path: Path):
     ``scene_name``, else the folder's name; never the default scene's."""
     data = tmp_path / "data"
     cfg = tiny_config(data, "trainer.max_steps=2", "evaluate=false")
-    from eventrecon.build import load_dataset
+    from eventrecon.engine.build import load_dataset
 
     src = load_dataset(cfg).root
     sword = tmp_path / "sword"
@@ -120,7 +120,7 @@ def test_runs_on_a_dataset_folder_are_named_after_the_dataset(tmp_path: Path):
     meta.pop("scene", None)
     (sword / "meta.json").write_text(json.dumps(meta))
     run_cfg = tiny_config(data, "trainer.max_steps=2", "evaluate=false", f"data.root={sword}")
-    from eventrecon.config import run_data_name
+    from eventrecon.config.resolvers import run_data_name
 
     assert run_data_name(_root_=run_cfg) == "sword"
     assert run_info(run_cfg, meta)["scene"] == "sword"

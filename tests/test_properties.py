@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 from integration import tiny_config
 
+from eventrecon.common.errors import InputError
 from eventrecon.data.properties import resolve_properties
-from eventrecon.errors import InputError
 
 REAL = {"tonemap_eps": 0.03, "decay": 0.93, "bayer": True,
         "segments": [[0, 210], [190, 410], [390, 610], [590, 810], [790, 1000]]}

@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch import Tensor, nn
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.render.cameras import ring_rig
 from eventrecon.render.clipping import Cylinder

@@ -12,11 +12,11 @@ import torch
 from integration import tiny_config
 from torch import Tensor, nn
 
-from eventrecon import build
+from eventrecon.common.errors import InputError
 from eventrecon.data.batcher import Segment
-from eventrecon.errors import InputError
-from eventrecon.losses import total_loss
-from eventrecon.module import EventNeRFModule, StepConfig, step_generator
+from eventrecon.engine import build
+from eventrecon.engine.losses import total_loss
+from eventrecon.engine.module import EventNeRFModule, StepConfig, step_generator
 from eventrecon.render.cameras import ring_rig
 from eventrecon.render.renderer import Renderer
 from eventrecon.render.volume import VolumeRenderer

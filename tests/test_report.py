@@ -389,9 +389,9 @@ def test_row_differences_pair_the_full_model_with_each_tab3_row(tmp_path):
 
 
 def test_findings_pair_only_runs_of_one_method_version(tmp_path):
-    from eventrecon.records import METHOD_VERSION
     from eventrecon.report.findings import paired
     from eventrecon.report.runs import current_runs
+    from eventrecon.results.records import METHOD_VERSION
 
     new, old = {"method_version": METHOD_VERSION}, {"method_version": None}
     jobs = []
@@ -451,8 +451,8 @@ def test_collapsed_cells_set_each_collapse_beside_the_papers_own_cell(tmp_path):
 
 
 def test_a_newer_method_version_supersedes_its_job_and_a_mixed_table_says_so(tmp_path):
-    from eventrecon.records import METHOD_VERSION
     from eventrecon.report.runs import current_runs
+    from eventrecon.results.records import METHOD_VERSION
 
     old = {"method_version": None}          # a record older than the field: version 1
     new = {"method_version": METHOD_VERSION, "lr_end_factor": 1.0}   # a key v1 lacked
@@ -484,8 +484,8 @@ def test_a_newer_method_version_supersedes_its_job_and_a_mixed_table_says_so(tmp
 
 
 def test_a_version_that_changed_a_default_supersedes_the_old_default_and_prunes_it(tmp_path):
-    from eventrecon.records import VERSION_KEYS
     from eventrecon.report.runs import current_runs, prune_superseded, supersedes
+    from eventrecon.results.records import VERSION_KEYS
 
     assert VERSION_KEYS[4] == ("betas_power",)
     v3 = {"method_version": 3, "sizing": "cpu_nerf"}
@@ -510,7 +510,7 @@ def test_a_version_that_changed_a_default_supersedes_the_old_default_and_prunes_
 
 def test_a_version_that_changed_only_some_runs_leaves_the_others_current(tmp_path,
                                                                           monkeypatch):
-    from eventrecon import records
+    from eventrecon.results import records
 
     monkeypatch.setattr(records, "METHOD_VERSION", 4)   # version 4's scope, at any later one
     changed = records.VERSION_SCOPE[4]
@@ -558,7 +558,7 @@ def test_a_version_that_changed_only_some_runs_leaves_the_others_current(tmp_pat
 
 
 def test_version_5_retrains_the_cpu_hexplane_runs_only(tmp_path, monkeypatch):
-    from eventrecon import records
+    from eventrecon.results import records
 
     monkeypatch.setattr(records, "METHOD_VERSION", 5)
     assert [s for s in ("cpu_nerf", "cpu_ngp", "cpu_hexplane", "cpu_tensorf_cp", "paper_nerf",
@@ -700,9 +700,9 @@ def test_full_model_best_waits_for_rows_without_pairs_of_one_version(tmp_path):
     """A table partly re-run at a new method version: the full model beats the one row
     re-run with it, but a row still at the old version has no pairs and must not let the
     claim hold."""
-    from eventrecon.records import METHOD_VERSION
     from eventrecon.report.findings import check_findings
     from eventrecon.report.runs import current_runs
+    from eventrecon.results.records import METHOD_VERSION
 
     new, old = {"method_version": METHOD_VERSION}, {"method_version": None}
     jobs = []
@@ -719,9 +719,9 @@ def test_full_model_best_waits_for_rows_without_pairs_of_one_version(tmp_path):
 
 
 def test_sweep_costs_sum_the_current_versions_job_times_and_price_the_older_runs(tmp_path):
-    from eventrecon.records import METHOD_VERSION
     from eventrecon.report.compute import sweep_costs, sweep_costs_markdown
     from eventrecon.report.runs import current_runs
+    from eventrecon.results.records import METHOD_VERSION
 
     v = {"method_version": METHOD_VERSION}
     t3 = [_metrics("spheres", seed=0, total_s=120.0, **v),

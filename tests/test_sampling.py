@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from eventrecon.common.errors import InputError
 from eventrecon.data.sampling import (
     jitter,
     pick_reference,
@@ -15,7 +16,6 @@ from eventrecon.data.sampling import (
     sample_pixels,
     sample_window,
 )
-from eventrecon.errors import InputError
 from eventrecon.events.accumulate import DecayedEvents
 from eventrecon.events.stream import EventStream
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
+from eventrecon.common.errors import InputError
 from eventrecon.data.layout import read_dataset
 from eventrecon.data.writer import write_dataset
-from eventrecon.errors import InputError
 from eventrecon.sim import pipeline
 from eventrecon.sim.pipeline import dataset_path, ensure_dataset, simulate_dataset
 from eventrecon.sim.spec import parse_spec
@@ -366,7 +366,7 @@ def test_frames_and_ground_truth_are_area_averaged_pixels_events_unchanged():
     """``frame_supersample=s``: every frame, background and ground-truth pixel is the mean
     of an s×s grid of rays over the pixel (the encoded mean of the linear radiance), while
     the events stay those of the ``supersample`` signal."""
-    from eventrecon.colour import linear_to_srgb
+    from eventrecon.common.colour import linear_to_srgb
     from eventrecon.sim.raytrace import PixelRenderer
     from eventrecon.sim.spec import build_cameras, parse_spec
 

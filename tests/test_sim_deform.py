@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.sim.scene import parse_scene
 from eventrecon.sim.skirt import intersect_skirt, parse_skirt
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.sim.config import effect_rng
 from eventrecon.sim.event_effects import (
     EVENT_EFFECTS,

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
+from eventrecon.common.errors import InputError
 from eventrecon.data.types import srgb_to_linear
-from eventrecon.errors import InputError
 from eventrecon.sim.config import effect_rng
 from eventrecon.sim.frame_effects import FRAME_EFFECTS, FrameContext
 from eventrecon.sim.frames import render_backgrounds, render_frames

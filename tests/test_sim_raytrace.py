@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.sim.motion import parse_motions, rotation_matrices
 from eventrecon.sim.raytrace import Renderer, intersect_box, intersect_plane, intersect_sphere
 from eventrecon.sim.scene import parse_scene

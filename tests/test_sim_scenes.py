@@ -11,7 +11,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from eventrecon.colour import linear_to_srgb
+from eventrecon.common.colour import linear_to_srgb
 from eventrecon.sim.pipeline import torch_threads
 from eventrecon.sim.raytrace import PixelRenderer
 from eventrecon.sim.spec import build_cameras, frame_times, parse_spec

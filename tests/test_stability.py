@@ -25,11 +25,11 @@ import torch
 from integration import TINY, TINY_NERF, tiny_config
 from torch.utils._python_dispatch import TorchDispatchMode
 
-import eventrecon.module as module_lib
-from eventrecon import build, runner
-from eventrecon.losses import total_loss
-from eventrecon.module import EventNeRFModule, NonFiniteLossError, step_generator
-from eventrecon.segments import resolve_segments
+import eventrecon.engine.module as module_lib
+from eventrecon.data.segments import resolve_segments
+from eventrecon.engine import build, runner
+from eventrecon.engine.losses import total_loss
+from eventrecon.engine.module import EventNeRFModule, NonFiniteLossError, step_generator
 from eventrecon.sim.pipeline import ensure_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -158,7 +158,7 @@ def test_intermittent_nonfinite_steps_are_skipped_and_counted(monkeypatch, caplo
     seen = _inject_nan(monkeypatch, bad, losses)
     cfg = tiny_config(data_dir, "trainer.max_steps=12", "trainer.max_nonfinite=3",
                       "trainer.log_every=4", "logger=tensorboard")
-    with caplog.at_level(logging.WARNING, logger="eventrecon.module"):
+    with caplog.at_level(logging.WARNING, logger="eventrecon.engine.module"):
         metrics = runner.run(cfg, tmp_path)
     assert metrics["status"] in ("ok", "collapsed") and metrics["steps"] == 12
     assert metrics["nonfinite_steps"] == 3
@@ -224,8 +224,8 @@ def test_diverging_run_stops_train_py_with_one_line(data_dir: Path, tmp_path: Pa
 @pytest.mark.parametrize("native, expected", [(True, "bf16-mixed"), (False, "32-true")])
 def test_auto_precision_takes_bf16_only_on_a_cpu_with_native_bf16(
         tmp_path: Path, monkeypatch, native: bool, expected: str):
-    import eventrecon.precision as precision
-    from eventrecon import records
+    import eventrecon.config.precision as precision
+    from eventrecon.results import records
 
     monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda: native)
     cfg = tiny_config(tmp_path)
@@ -242,8 +242,8 @@ def test_auto_precision_keeps_the_grid_backbones_in_fp32(tmp_path: Path, monkeyp
                                                          model: str):
     """bf16 autocast does not speed their steps (``model.cpu_bf16: false``), so ``auto``
     trains them in fp32 even where the CPU has native bf16; a written value still wins."""
-    import eventrecon.precision as precision
-    from eventrecon import records
+    import eventrecon.config.precision as precision
+    from eventrecon.results import records
 
     monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda: True)
     cfg = tiny_config(tmp_path, f"model={model}", base=TINY)

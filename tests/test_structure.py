@@ -17,7 +17,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = {"eventrecon": ROOT / "src" / "eventrecon", "baselines": ROOT / "baselines"}
-MAX_LINES = 400
+MAX_LINES = 800
 
 
 def _modules() -> dict[str, Path]:

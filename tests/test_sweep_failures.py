@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 from integration import tiny_config
 
-from eventrecon import build, runner
+from eventrecon.engine import build, runner
 from eventrecon.sim.pipeline import ensure_dataset
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -12,10 +12,10 @@ import torch
 import yaml
 from integration import tiny_config
 
-from eventrecon import build, runner
-from eventrecon.callbacks import HeldOutMonitor
 from eventrecon.data.batcher import Segment
-from eventrecon.losses import log_intensity
+from eventrecon.engine import build, runner
+from eventrecon.engine.callbacks import HeldOutMonitor
+from eventrecon.engine.losses import log_intensity
 
 
 @pytest.fixture(scope="module")

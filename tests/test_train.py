@@ -16,15 +16,16 @@ import pytest
 import torch
 from integration import tiny_config
 
-from eventrecon import build, records, runner
+from eventrecon.common.errors import InputError
 from eventrecon.data import selection
 from eventrecon.data.batcher import Segment
-from eventrecon.errors import InputError
-from eventrecon.losses import total_loss
-from eventrecon.machine import machine_name
-from eventrecon.module import step_generator
-from eventrecon.records import stitch_curves
-from eventrecon.segments import segment_config, segment_steps
+from eventrecon.engine import build, runner
+from eventrecon.engine.losses import total_loss
+from eventrecon.engine.module import step_generator
+from eventrecon.engine.segments import segment_config, segment_steps
+from eventrecon.results import records
+from eventrecon.results.machine import machine_name
+from eventrecon.results.records import stitch_curves
 from eventrecon.sim.pipeline import dataset_path
 
 
@@ -182,7 +183,7 @@ def test_views_and_fps_selection(data_dir: Path):
     assert len(three.events) == 3 and three.frames.shape[1] == 3
     one = selection.select_fps(train, 0.5, float(ds.meta["duration_s"]))
     assert one.frame_times.tolist() == [0.0]
-    from eventrecon.errors import InputError
+    from eventrecon.common.errors import InputError
     with pytest.raises(InputError, match="data.fps"):
         selection.select_fps(train, 1000.0, float(ds.meta["duration_s"]))
     with pytest.raises(InputError, match="data.views"):
@@ -310,9 +311,9 @@ def test_a_late_decay_holds_the_lr_then_decays_and_the_record_and_tables_say_so(
     # without a decay its start changes nothing, and the record says 0 (the tables' jobs)
     assert records.run_info(tiny_config(data_dir, "trainer.lr_end_factor=1.0",
                                         "trainer.lr_decay_start=0.5"), {})["lr_decay_start"] == 0
+    from eventrecon.evaluation.summary import format_summary
     from eventrecon.report.cells import method_notes
     from eventrecon.report.runs import _job, collect_runs
-    from eventrecon.summary import format_summary
     info = {**records.run_info(cfg, {}), "status": "ok", "psnr": 25.0}
     records.write_metrics(tmp_path / "r" / "0", info)
     notes = " ".join(method_notes(collect_runs([tmp_path / "r"])))
@@ -335,7 +336,7 @@ def test_a_late_decay_holds_the_lr_then_decays_and_the_record_and_tables_say_so(
 
 def test_renderers_take_the_runs_mixed_precision_for_images_and_the_record_says_so(
         data_dir: Path, monkeypatch) -> None:
-    from eventrecon import precision
+    from eventrecon.config import precision
 
     monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda: True)
     cfg = tiny_config(data_dir, "trainer.lightning.precision=bf16-mixed")
@@ -415,7 +416,7 @@ def test_a_segment_trained_by_an_older_method_version_trains_again(
     seg = tmp_path / "seg0"
     assert json.loads((seg / "done.json").read_text())["method_version"] == old
     monkeypatch.setattr(records, "METHOD_VERSION", old + 1)   # the method changed since
-    with caplog.at_level("WARNING", logger="eventrecon.runner"):
+    with caplog.at_level("WARNING", logger="eventrecon.engine.runner"):
         again = runner.run(tiny_config(data_dir, "trainer.max_steps=4", "evaluate=false"),
                            tmp_path)
     assert f"trained by method version {old} (now {old + 1})" in caplog.text
@@ -434,12 +435,12 @@ def test_a_segment_trained_on_other_data_trains_again(data_dir: Path, tmp_path: 
     shutil.copytree(root, changed)
     out, seg = tmp_path / "run", tmp_path / "run" / "seg0"
     for data in (root, root):
-        with caplog.at_level("INFO", logger="eventrecon.runner"):
+        with caplog.at_level("INFO", logger="eventrecon.engine.runner"):
             runner.run(tiny_config(data_dir, f"data.root={data}", "trainer.max_steps=4",
                                    "evaluate=false"), out)
     assert "trained before" in caplog.text and "kept as" not in caplog.text
     assert json.loads((seg / "done.json").read_text())["data_id"] == root.name
-    with caplog.at_level("WARNING", logger="eventrecon.runner"):
+    with caplog.at_level("WARNING", logger="eventrecon.engine.runner"):
         again = runner.run(tiny_config(data_dir, f"data.root={changed}", "trainer.max_steps=4",
                                        "evaluate=false"), out)
     assert f"trained on {root.name} (now changed-scene)" in caplog.text

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import torch
 
+from eventrecon.common.errors import InputError
 from eventrecon.data.sampling import sample_window
 from eventrecon.data.types import SplitData
 from eventrecon.data.window_stats import window_stats
-from eventrecon.errors import InputError
 from eventrecon.events.noise_theory import window_noise_moments
 from eventrecon.events.stream import EventStream
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 from integration import TINY, tiny_config
 
-from eventrecon import build, runner
-from eventrecon.segments import resolve_segments
+from eventrecon.data.segments import resolve_segments
+from eventrecon.engine import build, runner
 
 SMALL = {
     "ngp": ["model.log2_table_size=14", "model.anneal_steps=10"],
@@ -41,8 +41,8 @@ def test_ngp_cylinder_annealing_reaches_full_radius_with_finite_losses(data_dir:
                                                                        tmp_path: Path):
     import torch
 
-    from eventrecon.losses import total_loss
-    from eventrecon.module import step_generator
+    from eventrecon.engine.losses import total_loss
+    from eventrecon.engine.module import step_generator
 
     cfg = tiny_config(data_dir, "model=ngp", "trainer.max_steps=24", *SMALL["ngp"], base=TINY)
     ds = build.load_dataset(cfg)

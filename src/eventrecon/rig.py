@@ -22,7 +22,7 @@ from pathlib import Path
 
 from eventrecon.capture.crf import fit_crf, load_sweep_csv, load_sweep_images, plot_crf
 from eventrecon.capture.usb import LibusbMissing, check_rig, list_cameras
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = ["main", "build_parser"]
 

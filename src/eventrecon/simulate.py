@@ -18,8 +18,8 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from eventrecon.errors import InputError
-from eventrecon.overrides import report_bad_overrides
+from eventrecon.common.errors import InputError
+from eventrecon.config.overrides import report_bad_overrides
 from eventrecon.sim.pipeline import ensure_dataset
 
 log = logging.getLogger("eventrecon.simulate")

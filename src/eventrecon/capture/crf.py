@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from eventrecon.capture.crf_model import apply_crf
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = ["CRFFit", "fit_crf", "used_samples", "simulate_sweep", "average_fit_bias",
            "plot_crf", "load_sweep_csv", "load_sweep_images", "exposure_from_name"]

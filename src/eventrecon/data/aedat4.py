@@ -5,7 +5,7 @@ are read; events keep their µs timestamps (uint64 in the file, int64 here) and 
 non-decreasing (a recording made after the master's timestamp reset). A frame's time is
 its exposure midpoint when the file records the exposure, else its timestamp. Frames
 are read in a second pass by ordinal index, so a long recording is never held in memory
-as images. A truncated or corrupt file is one :class:`~eventrecon.errors.InputError`.
+as images. A truncated or corrupt file is one :class:`~eventrecon.common.errors.InputError`.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = ["Recording", "decode_aedat4", "read_frames"]
 

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.colour import GREY_LINEAR, srgb_to_linear
+from eventrecon.common.colour import GREY_LINEAR, srgb_to_linear
 from eventrecon.data import sampling
 from eventrecon.data.types import SplitData
 from eventrecon.events.accumulate import DecayedEvents
@@ -49,7 +49,7 @@ class Segment:
 
 def background_linear(split: SplitData) -> Tensor:
     """``[V, H, W, 3]`` linear background: the split's frames, else the method's constant
-    grey (:data:`eventrecon.colour.GREY_LINEAR`)."""
+    grey (:data:`eventrecon.common.colour.GREY_LINEAR`)."""
     cams = split.cameras
     if split.background is not None:
         return torch.from_numpy(srgb_to_linear(split.background))
@@ -129,7 +129,7 @@ class RayBatcher:
         uv = torch.stack([col, row], -1).double()
         uv = sampling.jitter(uv, gen)
         # Colour event pixels see one channel; grey event pixels see the channel mean
-        # (mask None, see eventrecon.losses.event_channels).
+        # (mask None, see eventrecon.engine.losses.event_channels).
         mask = bayer_mask_at(row, col).float() if self.bayer else None
         return {
             "view": view, "row": row, "col": col, "uv": uv,

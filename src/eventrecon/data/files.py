@@ -1,7 +1,7 @@
 """Parsers and validators for the single files of the published dataset layout.
 
 Each reader takes one path and returns plain NumPy arrays, or raises
-:class:`eventrecon.errors.InputError` with one line naming the file, the field and
+:class:`eventrecon.common.errors.InputError` with one line naming the file, the field and
 the expectation -- a malformed file never surfaces as a traceback from deep inside
 NumPy, zipfile or PIL.
 
@@ -26,7 +26,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from eventrecon import TIME_SPAN
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.events.stream import EventStream
 from eventrecon.render.cameras import RIGID_TOL, K_from_file, check_intrinsics, check_rigid
 

@@ -25,7 +25,7 @@ Rules:
 - **Frames** ``[F, V, H, W, 3]`` uint8 (``[F, V, H, W]`` if the PNGs are single-channel
   Bayer raw), ``frame_times [F]`` parsed from the folder names, sorted by time.
 
-Every violation raises :class:`eventrecon.errors.InputError` naming file and field.
+Every violation raises :class:`eventrecon.common.errors.InputError` naming file and field.
 
 >>> ds = read_dataset("data/scene")                    # doctest: +SKIP
 >>> ds.splits["train"].frames.shape                    # doctest: +SKIP
@@ -39,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from eventrecon.common.errors import InputError
+from eventrecon.common.progress import TaskProgress
 from eventrecon.data.files import (
     RIGID_TOL,
     read_events_npz,
@@ -50,10 +52,8 @@ from eventrecon.data.files import (
 from eventrecon.data.legacy import is_legacy_split
 from eventrecon.data.types import Dataset, SplitData
 from eventrecon.data.views import list_views, match_views
-from eventrecon.errors import InputError
 from eventrecon.events.stream import EventStream
 from eventrecon.render.cameras import Cameras, cameras_from_camdict
-from eventrecon.taskprogress import TaskProgress
 
 __all__ = ["read_split", "read_dataset", "SPLITS"]
 

@@ -32,9 +32,9 @@ import numpy as np
 import torch
 
 from eventrecon import TIME_SPAN
+from eventrecon.common.errors import InputError
 from eventrecon.data.files import RIGID_TOL, read_events_npz, read_intrinsics, read_png, read_pose
 from eventrecon.data.views import list_views, match_views
-from eventrecon.errors import InputError
 from eventrecon.events.stream import EventStream
 from eventrecon.render.cameras import Cameras
 

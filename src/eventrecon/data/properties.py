@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = ["SceneProperties", "resolve_properties", "REQUIRED", "DEFAULT_CYLINDER"]
 

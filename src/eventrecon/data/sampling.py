@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = ["sample_window", "rays_per_view", "sample_pixels", "jitter", "pick_reference"]
 

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from eventrecon.common.errors import InputError
 from eventrecon.data.types import Dataset, SplitData
-from eventrecon.errors import InputError
 
 __all__ = ["heldout_split", "check_training_split", "select_views", "select_fps",
            "training_split", "window_frames"]

@@ -1,7 +1,7 @@
 """In-memory structures of a dataset in the published layout.
 
 Events are :class:`~eventrecon.events.stream.EventStream` arrays; frames are uint8,
-encoded as stored (linearise with :func:`eventrecon.colour.srgb_to_linear`). The
+encoded as stored (linearise with :func:`eventrecon.common.colour.srgb_to_linear`). The
 event and colour names are re-exported here for readers of a dataset.
 """
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eventrecon.colour import GAMMA, linear_to_srgb, srgb_to_linear
+from eventrecon.common.colour import GAMMA, linear_to_srgb, srgb_to_linear
 from eventrecon.events.stream import EventStream
 from eventrecon.render.cameras import Cameras
 
@@ -33,7 +33,7 @@ class SplitData:
         masks: ``[F, V, H, W]`` bool foreground masks, or ``None``.
         loss_mask: ``[V, H, W]`` float32 in ``[0, 1]``: a static ``mask/<view>.png`` (its
             first channel / 255), by which the authors weight the photometric losses of
-            training rays (:mod:`eventrecon.losses`); ``None`` without one (per-frame
+            training rays (:mod:`eventrecon.engine.losses`); ``None`` without one (per-frame
             ``mask/<time>/`` folders, the simulator's, are never training masks).
     """
 

@@ -29,10 +29,10 @@ import numpy as np
 import torch
 
 from eventrecon import TIME_SPAN
+from eventrecon.common.errors import InputError
 from eventrecon.data.layout import read_split
 from eventrecon.data.sampling import sample_window
 from eventrecon.data.types import SplitData
-from eventrecon.errors import InputError
 from eventrecon.events.accumulate import DecayedEvents
 
 __all__ = ["RegionStats", "WindowStats", "window_stats", "main"]

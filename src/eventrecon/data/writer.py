@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from eventrecon.common.errors import InputError
 from eventrecon.data.types import Dataset, SplitData
-from eventrecon.errors import InputError
 from eventrecon.events.stream import EventStream
 from eventrecon.render.cameras import Cameras, K_to_file, cameras_to_camdict
 

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.events.stream import EventStream
 
 __all__ = ["DecayedEvents", "decayed_prefix"]

@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = ["bayer_channel", "bayer_mask", "bayer_mask_at"]
 

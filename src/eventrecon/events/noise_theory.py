@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = [
     "NoiseMoments",

@@ -34,7 +34,7 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor, nn
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = ["PositionalEncoding", "band_window", "BandAnnealing"]
 

@@ -37,7 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.fields.encoding import BandAnnealing, PositionalEncoding
 

@@ -20,7 +20,7 @@ The switch is a backbone's ``implementation`` (``conf/model/*.yaml``, key
   sizes and dtypes it supports, no gradient with respect to the coordinates needed),
   else the PyTorch reference;
 - ``"torch"``: the PyTorch reference everywhere (a kernel is never called);
-- ``"numba"``: the kernel, and an :class:`~eventrecon.errors.InputError` naming
+- ``"numba"``: the kernel, and an :class:`~eventrecon.common.errors.InputError` naming
   ``implementation`` where it cannot apply.
 
 Each kernel module has a function that says what the kernel needs and a call lacks
@@ -31,7 +31,7 @@ backbone passes its answer to :func:`use_kernel`.
 
 from __future__ import annotations
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = ["IMPLEMENTATIONS", "resolve", "use_kernel"]
 
@@ -47,7 +47,7 @@ def resolve(implementation: str) -> str:
     >>> resolve("fast")  # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
-    eventrecon.errors.InputError: conf/model: implementation: expected auto, torch or ...
+    eventrecon.common.errors.InputError: conf/model: implementation: expected auto, torch or ...
     """
     if implementation not in IMPLEMENTATIONS:
         raise InputError("conf/model", "implementation", "auto, torch or numba",
@@ -64,7 +64,7 @@ def use_kernel(implementation: str, missing: str | None) -> bool:
     >>> use_kernel("numba", "a CPU")  # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
-    eventrecon.errors.InputError: conf/model: implementation: expected auto or torch where ...
+    eventrecon.common.errors.InputError: conf/model: implementation: expected auto or torch ...
 
     Raises:
         InputError: ``implementation`` is ``"numba"`` and ``missing`` names a reason, or

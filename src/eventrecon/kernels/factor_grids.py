@@ -60,7 +60,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.kernels.jit import AVAILABLE, GRAIN, inline, parallel, parts, prange, serial
 
 __all__ = ["BLOCK", "MAX_BYTES", "PAD", "channel_rows", "cp_rank_sum", "cp_unsupported",

@@ -43,7 +43,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.kernels.jit import AVAILABLE, inline, parallel, parts, prange, serial
 
 __all__ = ["Plan", "encode", "unsupported"]

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.render.distortion import distort, undistort
 
 __all__ = [
@@ -313,7 +313,7 @@ def cameras_from_camdict(camdict: dict, source: str | Path = "camdict.json",
     Each entry: ``K`` (4×4 flattened; its 3×3 block a proper intrinsic matrix), ``W2C``
     (4×4 flattened, rigid within ``rigid_tol``), optional ``dist`` ``[k1, k2, p1, p2(, k3)]``
     and ``img_size [W, H]`` (equal for all entries). Violations raise
-    :class:`~eventrecon.errors.InputError` naming ``source`` and ``<image>.<key>``.
+    :class:`~eventrecon.common.errors.InputError` naming ``source`` and ``<image>.<key>``.
     """
     if not isinstance(camdict, dict) or not camdict:
         raise InputError(source, "<root>", "a non-empty JSON object of per-image entries")

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = ["Cylinder", "INSIDE_TOL", "PARALLEL_EPS", "NO_CLIPPING"]
 

@@ -53,7 +53,7 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor, nn
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = ["OccupancyGrid", "OccupancyUpdate", "dilate"]
 

@@ -31,8 +31,8 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor, nn
 
-from eventrecon.colour import GREY_LINEAR
-from eventrecon.errors import InputError
+from eventrecon.common.colour import GREY_LINEAR
+from eventrecon.common.errors import InputError
 from eventrecon.render.clipping import NO_CLIPPING, Cylinder
 
 if TYPE_CHECKING:
@@ -55,7 +55,7 @@ def background_rows(bg_image: Tensor | float | None, h: int, w: int,
                     device: torch.device) -> Tensor:
     """``[H·W, 3]`` linear background of an image's pixels (row-major) from an
     ``[H, W, 3]`` image, a ``[3]`` colour, a float, or ``None`` for the method's grey
-    (:data:`~eventrecon.colour.GREY_LINEAR`).
+    (:data:`~eventrecon.common.colour.GREY_LINEAR`).
 
     >>> background_rows(0.5, 1, 2, torch.device("cpu")).tolist()
     [[0.5, 0.5, 0.5], [0.5, 0.5, 0.5]]

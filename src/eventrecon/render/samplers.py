@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = ["TAU_MAX", "stratified", "sample_pdf", "step_sizes", "pdf_bins"]
 

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.render.clipping import INSIDE_TOL
 from eventrecon.render.occupancy import OccupancyGrid, OccupancyUpdate

@@ -19,7 +19,7 @@ import logging
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.report.collapses import collapsed_cells, collapsed_cells_markdown
 from eventrecon.report.compute import sweep_costs, sweep_costs_markdown
 from eventrecon.report.curves import DEFAULT_LEVELS, write_accuracy_vs_time
@@ -67,7 +67,7 @@ def build_report(
 ) -> list[Path]:
     """Collect the runs under ``dirs`` and write every table and the accuracy-vs-time
     figure and table (``loss=full`` runs of ``curves_experiment``) into ``out``.
-    Returns the written paths. Raises :class:`~eventrecon.errors.InputError` before writing
+    Returns the written paths. Raises :class:`~eventrecon.common.errors.InputError` before writing
     anything when none of ``dirs`` exists (a typo, or no sweep run yet): the tables would
     be empty, and written to ``docs/results`` they would replace the committed ones. (Folders
     that exist but hold no run still give tables of "—", as for missing cells.)"""

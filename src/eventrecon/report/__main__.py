@@ -13,7 +13,7 @@ import argparse
 import logging
 import sys
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.report import PAPER_TABLES, build_report
 from eventrecon.report.curves import DEFAULT_LEVELS
 from eventrecon.report.tables import REAL_SCENE

@@ -13,10 +13,10 @@ from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-from eventrecon.records import METHOD_VERSIONS
 from eventrecon.report.format import DASH, fmt
 from eventrecon.report.runs import Run
 from eventrecon.report.stats import MeanCI, mean_ci
+from eventrecon.results.records import METHOD_VERSIONS
 
 __all__ = ["Cell", "per_seed", "cell_stats", "fmt_ci", "method_notes"]
 

@@ -5,7 +5,7 @@ evaluation; ``wall_s``, training alone, where an older record lacks it). A resum
 counts its last process only, so a sum is a lower bound when jobs were killed and resumed.
 
 For each experiment, over the runs made with the current
-:data:`~eventrecon.records.METHOD_VERSION`:
+:data:`~eventrecon.results.records.METHOD_VERSION`:
 
 - ``n`` runs, their median job time ``m`` and total ``S = Σ total_s``;
 - the sweep's wall time on ``lanes`` parallel one-thread jobs, ``S / lanes`` (the recipe
@@ -24,9 +24,9 @@ import statistics
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-from eventrecon.records import METHOD_VERSION
 from eventrecon.report.format import fmt, markdown_table
 from eventrecon.report.runs import Run
+from eventrecon.results.records import METHOD_VERSION
 
 __all__ = ["LANES", "SweepCost", "job_seconds", "sweep_costs", "sweep_costs_markdown"]
 

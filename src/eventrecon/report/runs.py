@@ -1,7 +1,7 @@
 """Run folders as the report reads them: collecting, copying and reading runs.
 
 The files of a run folder (``metrics.json``, ``curve.csv``, ``seg<k>/``) are defined by
-:mod:`eventrecon.records`; this module finds them (recursively, a malformed
+:mod:`eventrecon.results.records`; this module finds them (recursively, a malformed
 ``metrics.json`` is skipped with a one-line warning so the report of a sweep survives
 one broken job), turns each into a :class:`Run`, reads curves as columns and copies a
 committable record of a sweep. When ``metrics.json`` has no ``experiment``, an
@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from eventrecon.errors import InputError
-from eventrecon.records import (
+from eventrecon.common.errors import InputError
+from eventrecon.results.records import (
     CURVE_FILE,
     CURVE_HEADER,
     METRICS_FILE,
@@ -33,7 +33,7 @@ from eventrecon.records import (
     stitch_curves,
     write_metrics,
 )
-from eventrecon.records import write_curve as _write_curve
+from eventrecon.results.records import write_curve as _write_curve
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +74,7 @@ class Run:
     def version(self) -> int:
         """The training method's version the run stands for: the ``method_version`` it was
         made with, carried over later versions that did not change its sizing
-        (:func:`eventrecon.records.record_version`)."""
+        (:func:`eventrecon.results.records.record_version`)."""
         return record_version(self.record)
 
     @property
@@ -172,7 +172,7 @@ _JOB_DEFAULTS: dict[str, Any] = {"lr_end_factor": 1.0, "lr_warmup": 0, "lr_decay
 def supersedes(new: Run, old: Run) -> bool:
     """Whether ``new`` replaces ``old`` in the tables: a run of the same experiment and job
     (:data:`JOB_KEYS`) made with a newer method version. The job keys whose default a
-    version after ``old``'s changed (:data:`eventrecon.records.VERSION_KEYS`) may differ:
+    version after ``old``'s changed (:data:`eventrecon.results.records.VERSION_KEYS`) may differ:
     a version-4 run with ``betas_power`` 10 replaces the version-3 run of its job, which
     trained with the old default 1."""
     if new.version <= old.version:
@@ -259,7 +259,7 @@ def prune_superseded(dest: str | Path) -> list[Path]:
 
 def read_curve(folder: str | Path) -> dict[str, np.ndarray]:
     """``<folder>/curve.csv`` (or its segments' curves, stitched by
-    :func:`eventrecon.records.stitch_curves`) as columns: float arrays ``wall_s, step,
+    :func:`eventrecon.results.records.stitch_curves`) as columns: float arrays ``wall_s, step,
     psnr, ssim, lpips`` (empty cell → NaN) and a str array ``kind``, sorted by
     ``wall_s``. Missing file → empty columns; a malformed cell → :class:`InputError`.
     """
@@ -310,7 +310,7 @@ def write_run(
     curve: Iterable[Mapping[str, Any]] = (),
 ) -> Path:
     """Write ``metrics.json`` (and ``curve.csv`` from rows with the CURVE_HEADER keys)
-    through :mod:`eventrecon.records`. Returns the folder (demo sweeps and tests)."""
+    through :mod:`eventrecon.results.records`. Returns the folder (demo sweeps and tests)."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     write_metrics(folder, metrics)

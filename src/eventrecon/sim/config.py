@@ -1,7 +1,7 @@
 """Reading and validating scene-config values, seeds and config hashes.
 
 Every simulator module reads its YAML fields through :func:`get`, so a malformed value
-raises one :class:`~eventrecon.errors.InputError` naming the scene file and the dotted
+raises one :class:`~eventrecon.common.errors.InputError` naming the scene file and the dotted
 field (``scene spheres: objects[1].motion.turns: expected a number, got 'two'``).
 
 Random streams are derived, never global: :func:`effect_rng` seeds a NumPy generator
@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = ["get", "get_vec", "positive", "effect_rng", "config_hash", "to_plain", "MISSING"]
 

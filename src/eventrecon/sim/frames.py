@@ -21,13 +21,13 @@ import numpy as np
 import torch
 
 from eventrecon import TIME_SPAN
+from eventrecon.common.progress import TaskProgress
 from eventrecon.data.types import linear_to_srgb, srgb_to_linear
 from eventrecon.sim.config import effect_rng
 from eventrecon.sim.frame_effects import FrameContext
 from eventrecon.sim.raytrace import PixelRenderer
 from eventrecon.sim.scene import Scene
 from eventrecon.sim.spec import SceneSpec
-from eventrecon.taskprogress import TaskProgress
 
 __all__ = ["render_frames", "render_backgrounds", "render_masks", "empty_scene",
            "apply_frame_effects"]

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.sim.config import get, get_vec
 
 __all__ = ["Motion", "rotation_matrices", "parse_motions", "MOTIONS"]

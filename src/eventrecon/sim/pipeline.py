@@ -23,9 +23,9 @@ from pathlib import Path
 
 import torch
 
+from eventrecon.common.locks import exclusive
 from eventrecon.data.types import Dataset, SplitData
 from eventrecon.data.writer import write_dataset
-from eventrecon.locks import exclusive
 from eventrecon.sim.config import config_hash, to_plain
 from eventrecon.sim.event_sim import simulate_events
 from eventrecon.sim.frames import render_backgrounds, render_frames, render_masks

@@ -44,7 +44,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.sim.config import get, get_vec
 from eventrecon.sim.motion import Motion, parse_motions, rotation_matrices
 from eventrecon.sim.skirt import Skirt, parse_skirt

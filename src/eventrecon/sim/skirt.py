@@ -51,7 +51,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.sim.config import get
 from eventrecon.sim.primitives import dot
 

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from eventrecon import TIME_SPAN
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.render.cameras import Cameras, load_camdict, ring_rig
 from eventrecon.sim.config import get, get_vec, positive, to_plain
 from eventrecon.sim.event_effects import EVENT_EFFECTS

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 from eventrecon.sim.config import get, get_vec
 
 __all__ = ["Texture", "TextureTable", "parse_texture", "TEXTURES"]

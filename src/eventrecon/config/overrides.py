@@ -6,7 +6,7 @@ common one is a list addressed by a name: ``scene.objects.0.motion.type=orbit`` 
 object's ``motion`` is a list of motions (``motion.0.type`` was meant); OmegaConf then
 raises ``ValueError: invalid literal for int()``. :func:`report_bad_overrides` makes
 Hydra report such an error as it reports its own: the project's one-line
-:class:`~eventrecon.errors.InputError` message naming the override and the list, no
+:class:`~eventrecon.common.errors.InputError` message naming the override and the list, no
 traceback (``HYDRA_FULL_ERROR=1`` still shows it), exit status 1 (Hydra's, as for any
 override it refuses).
 """
@@ -18,7 +18,7 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = ["bad_override", "list_node", "override_in_flight", "report_bad_overrides"]
 

@@ -16,8 +16,8 @@ only rank 0 writes ``curve.csv``; loggers are rank-0 only by themselves.
 
 Wall-clock is the training time only: time spent inside this callback is subtracted,
 so curves of different backbones compare training cost. Rows go to the segment's
-``curve.csv`` (:class:`eventrecon.records.CurveLog`); renders are scored as the final
-evaluation scores them (:func:`eventrecon.evaluate.score_images`); a full evaluation
+``curve.csv`` (:class:`eventrecon.results.records.CurveLog`); renders are scored as the final
+evaluation scores them (:func:`eventrecon.evaluation.heldout.score_images`); a full evaluation
 that improves PSNR saves ``checkpoints/best.ckpt``.
 """
 
@@ -35,8 +35,8 @@ import torch
 
 from eventrecon.data.batcher import Segment, background_linear
 from eventrecon.data.types import SplitData
-from eventrecon.evaluate import cheap_psnr, encode, score_images
-from eventrecon.records import CURVE_FILE, CurveLog
+from eventrecon.evaluation.heldout import cheap_psnr, encode, score_images
+from eventrecon.results.records import CURVE_FILE, CurveLog
 
 __all__ = ["HeldOutMonitor"]
 
@@ -205,8 +205,8 @@ class HeldOutMonitor(L.Callback):
         pixel sees (its Bayer channel, or the channel mean for grey event pixels); red
         for brighter, blue for darker, both panels on the same scale.
         """
+        from eventrecon.engine.losses import log_intensity
         from eventrecon.events.bayer import bayer_mask
-        from eventrecon.losses import log_intensity
 
         batcher, renderer, field = pl_module.batcher, pl_module.renderer, pl_module.field
         cfg = pl_module.loss_cfg

@@ -15,7 +15,7 @@ import time
 
 __all__ = ["TaskProgress", "format_seconds"]
 
-log = logging.getLogger("eventrecon.progress")
+log = logging.getLogger("eventrecon.engine.progress")
 
 
 def format_seconds(s: float) -> str:

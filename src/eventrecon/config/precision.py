@@ -26,7 +26,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = ["AUTO", "LIGHTNING_PRECISIONS", "cpu_has_native_bf16", "image_dtype",
            "mixed_dtype", "resolve_precision", "run_precision"]

@@ -19,19 +19,19 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from eventrecon import TIME_SPAN
-from eventrecon.build import DESCRIPTIVE_KEYS, target_and_arguments
-from eventrecon.config import max_steps, schedule
-from eventrecon.errors import InputError, as_number
-from eventrecon.fields.base import Field
-from eventrecon.losses import LossConfig
-from eventrecon.optim_settings import (
+from eventrecon.common.errors import InputError, as_number
+from eventrecon.config.precision import run_precision
+from eventrecon.config.resolvers import max_steps, schedule
+from eventrecon.engine.build import DESCRIPTIVE_KEYS, target_and_arguments
+from eventrecon.engine.losses import LossConfig
+from eventrecon.engine.optim import (
     adam_betas,
     lr_decay_start,
     lr_end_factor,
     lr_warmup,
     optim_numbers,
 )
-from eventrecon.precision import run_precision
+from eventrecon.fields.base import Field
 from eventrecon.render.renderer import Renderer
 
 __all__ = ["check_run_keys", "check_data_keys"]
@@ -88,14 +88,14 @@ def check_data_keys(data: Mapping[str, Any]) -> None:
 def check_run_keys(cfg: Mapping[str, Any]) -> None:
     """Every key of the module docstring, the first wrong one as one :class:`InputError`:
 
-    - ``trainer``: ``schedule`` and ``paper_steps`` (:func:`~eventrecon.config.schedule`),
-      ``max_steps`` (:func:`~eventrecon.config.max_steps`), ``n_rays`` (an integer >= 1),
-      the lr schedule (:mod:`eventrecon.optim_settings`) and the precision
-      (:func:`~eventrecon.precision.run_precision`);
+    - ``trainer``: ``schedule`` and ``paper_steps`` (:func:`~eventrecon.config.resolvers.schedule`),
+      ``max_steps`` (:func:`~eventrecon.config.resolvers.max_steps`), ``n_rays`` (an integer >= 1),
+      the lr schedule (:mod:`eventrecon.engine.optim`) and the precision
+      (:func:`~eventrecon.config.precision.run_precision`);
     - ``seed`` (an integer) and the ``data`` keys (:func:`check_data_keys`);
-    - ``model.optim``'s numbers and betas (:mod:`eventrecon.optim_settings`);
+    - ``model.optim``'s numbers and betas (:mod:`eventrecon.engine.optim`);
     - ``model``, ``loss`` and ``render``: their targets import and their values have the
-      types their constructors declare (:func:`~eventrecon.build.target_and_arguments`,
+      types their constructors declare (:func:`~eventrecon.engine.build.target_and_arguments`,
       nothing built).
 
     >>> from omegaconf import OmegaConf

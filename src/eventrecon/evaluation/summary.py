@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from eventrecon.taskprogress import format_seconds
+from eventrecon.common.progress import format_seconds
 
 __all__ = ["format_summary"]
 

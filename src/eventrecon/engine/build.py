@@ -8,7 +8,7 @@ class path or an argument is one line naming the config key, not a traceback:
   optimiser settings, read by :func:`build_module`);
 - ``cfg.render`` → the :class:`~eventrecon.render.renderer.Renderer` (the volume
   renderer by default), with the scene's clipping cylinder;
-- ``cfg.loss``   → the :class:`~eventrecon.losses.LossConfig`, with the scene's ε and θ;
+- ``cfg.loss``   → the :class:`~eventrecon.engine.losses.LossConfig`, with the scene's ε and θ;
 - ``cfg.logger`` and ``cfg.trainer.callbacks`` → Lightning's logger and extra callbacks.
 
 The dataset is read (``data.root``) or simulated (``scene``); its physical properties
@@ -32,23 +32,23 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import InterpolationResolutionError
 
+from eventrecon.common.errors import InputError
+from eventrecon.config.precision import image_dtype, run_precision
 from eventrecon.data.batcher import RayBatcher, Segment
 from eventrecon.data.properties import SceneProperties, resolve_properties
 from eventrecon.data.types import Dataset, SplitData
-from eventrecon.errors import InputError
-from eventrecon.fields.base import Field
-from eventrecon.losses import LossConfig
-from eventrecon.module import EventNeRFModule, StepConfig, field_class_name
-from eventrecon.optim_settings import (
+from eventrecon.engine.losses import LossConfig
+from eventrecon.engine.module import EventNeRFModule, StepConfig, field_class_name
+from eventrecon.engine.optim import (
     adam_betas,
     lr_decay_start,
     lr_end_factor,
     lr_warmup,
     optim_numbers,
 )
-from eventrecon.precision import image_dtype, run_precision
-from eventrecon.records import run_info
+from eventrecon.fields.base import Field
 from eventrecon.render.renderer import Renderer
+from eventrecon.results.records import run_info
 
 __all__ = ["instantiate", "load_dataset", "scene_properties", "build_field",
            "build_renderer", "build_loss", "build_module", "build_logger",
@@ -59,7 +59,7 @@ log = logging.getLogger(__name__)
 
 #: Keys of a model or loss node that describe the object rather than construct it (the
 #: row name in the reports, the optimiser settings, whether bf16 pays on a CPU:
-#: :mod:`eventrecon.precision`).
+#: :mod:`eventrecon.config.precision`).
 DESCRIPTIVE_KEYS: tuple[str, ...] = ("name", "optim", "cpu_bf16")
 
 
@@ -68,11 +68,11 @@ def instantiate(node: DictConfig | dict, where: str, base: type | None = None,
     """``node._target_(**node, **extra)``, checked (:func:`target_and_arguments`; an
     argument the class does not take is one :class:`InputError` naming ``where`` too).
 
-    >>> instantiate({"_target_": "eventrecon.losses.LossConfig", "name": "x", "w_rgb": 0.5},
+    >>> instantiate({"_target_": "eventrecon.engine.losses.LossConfig", "name": "x", "w_rgb": 0.5},
     ...             "loss", skip=("name",)).w_rgb
     0.5
     >>> try:
-    ...     instantiate({"_target_": "eventrecon.losses.Nope"}, "loss")
+    ...     instantiate({"_target_": "eventrecon.engine.losses.Nope"}, "loss")
     ... except InputError as e:
     ...     print(str(e)[:81])
     config: loss._target_: expected an importable class (a _target_ as in conf/loss/)
@@ -93,8 +93,9 @@ def target_and_arguments(node: DictConfig | dict, where: str, base: type | None 
     ``int`` / ``float`` / ``bool`` its constructor declares (:func:`_check_scalar_types`)
     is one :class:`InputError` naming ``where`` (the config key).
 
-    >>> target_and_arguments({"_target_": "eventrecon.losses.LossConfig", "w_rgb": 1}, "loss")
-    (<class 'eventrecon.losses.LossConfig'>, {'w_rgb': 1})
+    >>> target_and_arguments({"_target_": "eventrecon.engine.losses.LossConfig", "w_rgb": 1},
+    ...                      "loss")
+    (<class 'eventrecon.engine.losses.LossConfig'>, {'w_rgb': 1})
     """
     try:
         kwargs = (OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig)
@@ -172,7 +173,7 @@ def scene_properties(cfg: DictConfig, ds: Dataset) -> SceneProperties:
 
 
 def planned_run_info(cfg: DictConfig) -> dict[str, Any]:
-    """:func:`~eventrecon.records.run_info` of a run that may have failed before reading
+    """:func:`~eventrecon.results.records.run_info` of a run that may have failed before reading
     its data (for the ``status: failed`` record of a sweep job, so the report puts the
     failure in the right cell): reads only the dataset's ``meta.json`` and counts its
     training poses when the dataset is on disk; otherwise falls back to the scene config.
@@ -207,7 +208,8 @@ def build_field(model_cfg: DictConfig) -> Field:
 def build_renderer(render_cfg: DictConfig, props: SceneProperties,
                    precision: str | int | None = None) -> Renderer:
     """The renderer of ``cfg.render`` with the scene's clipping cylinder; its images render
-    under the autocast of the run's ``precision`` (:func:`~eventrecon.precision.image_dtype`)."""
+    under the autocast of the run's ``precision``
+    (:func:`~eventrecon.config.precision.image_dtype`)."""
     renderer = instantiate(render_cfg, "render", Renderer, skip=("image_autocast",),
                            **props.cylinder)
     renderer.image_dtype = image_dtype(render_cfg, precision)

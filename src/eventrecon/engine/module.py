@@ -8,7 +8,7 @@ Per step (docs/method.md "Per-iteration sampling"):
 2. every pixel is rendered at three times ``t0, t1, t_ref`` in one renderer call (the
    samples stacked ``[3N]``; :mod:`eventrecon.render.renderer`), coarse and fine levels
    of the volume renderer by ONE field;
-3. :func:`eventrecon.losses.total_loss` sums L_event, L_acc, L_rgb and the ramped
+3. :func:`eventrecon.engine.losses.total_loss` sums L_event, L_acc, L_rgb and the ramped
    L_sparsity over both levels; the field's own regulariser (e.g. TV) is added.
 
 A non-finite loss skips the step (``training_step`` returns ``None``, so no backward and
@@ -27,13 +27,13 @@ import lightning as L
 import torch
 from torch import Tensor
 
-from eventrecon import records
+from eventrecon.common.errors import InputError
 from eventrecon.data.batcher import RayBatcher
 from eventrecon.data.datamodule import StepCounter
-from eventrecon.errors import InputError
+from eventrecon.engine.losses import LossConfig, total_loss
 from eventrecon.fields.base import Field
-from eventrecon.losses import LossConfig, total_loss
 from eventrecon.render.renderer import Renderer
+from eventrecon.results import records
 
 __all__ = ["EventNeRFModule", "StepConfig", "NonFiniteLossError", "step_generator",
            "adamw_fused", "field_class_name"]
@@ -162,7 +162,7 @@ class EventNeRFModule(L.LightningModule):
         self.stop_reason: str | None = None
         self.last_window: tuple[float, float] = (0.0, 1.0)  # (t0, t1) of the last step
         #: ``(step, mean opacity)`` of the fine level's three renders, every ``log_every``
-        #: steps (the collapse check, :mod:`eventrecon.collapse`)
+        #: steps (the collapse check, :mod:`eventrecon.engine.collapse`)
         self.opacity_log: list[tuple[int, float]] = []
         #: the dataset folder's name the runner trains on (recorded in checkpoints)
         self.data_id: str | None = None

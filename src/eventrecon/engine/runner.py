@@ -5,8 +5,8 @@ segment of the scene (one for synthetic scenes, several overlapping ones for rig
 and real scenes) it trains a fresh field in ``out_dir/seg<k>/`` (resuming from its
 ``last.ckpt`` when present), then renders the held-out views at every ground-truth time,
 cross-fading segments, and writes ``metrics.json``. Objects are built by
-:mod:`eventrecon.build`, the data selected by :mod:`eventrecon.data.selection`, the
-records written by :mod:`eventrecon.records`, the scoring done by
+:mod:`eventrecon.engine.build`, the data selected by :mod:`eventrecon.data.selection`, the
+records written by :mod:`eventrecon.results.records`, the scoring done by
 :mod:`eventrecon.evaluate`.
 """
 
@@ -20,8 +20,16 @@ from typing import Any
 import lightning as L
 from omegaconf import DictConfig, OmegaConf
 
-from eventrecon import records
-from eventrecon.build import (
+from eventrecon.common.errors import InputError
+from eventrecon.common.files import remove_stale_temporaries
+from eventrecon.common.locks import exclusive
+from eventrecon.config.precision import run_precision
+from eventrecon.data.batcher import Segment
+from eventrecon.data.datamodule import SegmentDataModule
+from eventrecon.data.properties import SceneProperties
+from eventrecon.data.selection import heldout_split, training_split
+from eventrecon.data.types import SplitData
+from eventrecon.engine.build import (
     build_callbacks,
     build_logger,
     build_module,
@@ -29,24 +37,17 @@ from eventrecon.build import (
     load_dataset,
     scene_properties,
 )
-from eventrecon.callbacks import HeldOutMonitor
-from eventrecon.checkpointing import AtomicCheckpointIO, remove_stale_temporaries
-from eventrecon.collapse import CollapseRule, collapse_reason
-from eventrecon.data.batcher import Segment
-from eventrecon.data.datamodule import SegmentDataModule
-from eventrecon.data.properties import SceneProperties
-from eventrecon.data.selection import heldout_split, training_split
-from eventrecon.data.types import SplitData
-from eventrecon.errors import InputError
-from eventrecon.evaluate import evaluate_models, run_device
-from eventrecon.locks import exclusive
-from eventrecon.machine import machine_name
-from eventrecon.memory import peak_mb, reset_peak
-from eventrecon.module import EventNeRFModule
-from eventrecon.precision import run_precision
-from eventrecon.progress import Progress
-from eventrecon.run_keys import check_run_keys
-from eventrecon.segments import run_segments, run_window, segment_config, segment_steps
+from eventrecon.engine.callbacks import HeldOutMonitor
+from eventrecon.engine.checkpointing import AtomicCheckpointIO
+from eventrecon.engine.collapse import CollapseRule, collapse_reason
+from eventrecon.engine.memory import peak_mb, reset_peak
+from eventrecon.engine.module import EventNeRFModule
+from eventrecon.engine.progress import Progress
+from eventrecon.engine.run_folder import evaluate_models, run_device
+from eventrecon.engine.run_keys import check_run_keys
+from eventrecon.engine.segments import run_segments, run_window, segment_config, segment_steps
+from eventrecon.results import records
+from eventrecon.results.machine import machine_name
 
 __all__ = ["run", "train_segment", "flat_hparams"]
 
@@ -133,7 +134,7 @@ def train_segment(cfg: DictConfig, props: SceneProperties, train: SplitData,
                   n_segments: int = 1, data_id: str | None = None
                   ) -> tuple[EventNeRFModule, float]:
     """Train (or resume) segment ``k`` for ``cfg.trainer.max_steps`` steps (a config from
-    :func:`~eventrecon.segments.segment_config`) on the dataset ``data_id``; returns the
+    :func:`~eventrecon.engine.segments.segment_config`) on the dataset ``data_id``; returns the
     module and the segment's training seconds (a resumed segment counts the time before
     the interruption too)."""
     seg_dir = out_dir / f"seg{k}"
@@ -193,7 +194,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict[str, Any]:
     """Train every segment of the run and evaluate; returns (and saves) the metrics.
 
     Each segment trains ``segment_steps`` steps with the config of
-    :func:`~eventrecon.segments.segment_config` and records ``seg<k>/done.json``; a
+    :func:`~eventrecon.engine.segments.segment_config` and records ``seg<k>/done.json``; a
     segment done with this budget is not trained again. With ``data.segment=k`` only
     segment ``k`` is trained; the job that completes the last missing segment of the
     folder evaluates the whole run, under a lock, once (a multirun over

@@ -31,8 +31,8 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from eventrecon.errors import InputError
-from eventrecon.naming import dataset_name
+from eventrecon.common.errors import InputError
+from eventrecon.config.naming import dataset_name
 
 __all__ = ["register_resolvers", "paper_steps", "run_data_name", "max_steps", "schedule",
            "SCHEDULES"]
@@ -96,7 +96,7 @@ def paper_steps(steps: int, *, _root_: Any) -> int:
 
 
 def run_data_name(*, _root_: Any) -> str:
-    """``${data_name:}``: the run's data name (:func:`eventrecon.naming.dataset_name`),
+    """``${data_name:}``: the run's data name (:func:`eventrecon.config.naming.dataset_name`),
     for the output folder."""
     data, scene = _root_.get("data") or {}, _root_.get("scene") or {}
     return dataset_name(data.get("root"), scene.get("name"))

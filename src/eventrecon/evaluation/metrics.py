@@ -6,7 +6,7 @@ numpy or torch (any device). Conventions of the paper's evaluation:
 - PSNR ``= -10 log10(mean((pred - gt)²))`` (peak 1); ``inf`` for identical images.
 - SSIM: :func:`skimage.metrics.structural_similarity` with ``data_range=1`` and
   ``channel_axis=-1`` (Gaussian-free 7×7 window, scikit-image defaults).
-- LPIPS: :class:`eventrecon.lpips_alex.LPIPSAlex` on inputs mapped to ``[-1, 1]``
+- LPIPS: :class:`eventrecon.evaluation.lpips.LPIPSAlex` on inputs mapped to ``[-1, 1]``
   (``2x - 1``). When the AlexNet weights cannot be had, LPIPS is *unavailable*:
   :func:`evaluate_images` returns ``lpips=None`` and a one-line ``lpips_note``, never 0.
 - Colour correction (off by default, as in the earlier EventNeRF evaluation): per image
@@ -29,8 +29,8 @@ import numpy as np
 import torch
 from skimage.metrics import structural_similarity
 
-from eventrecon.errors import InputError
-from eventrecon.lpips_alex import LPIPSUnavailable, load_lpips_alex
+from eventrecon.common.errors import InputError
+from eventrecon.evaluation.lpips import LPIPSUnavailable, load_lpips_alex
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +125,7 @@ def lpips(
     """LPIPS-Alex v0.1 distance (lower is better); mean over a batch.
 
     Inputs in ``[0, 1]`` are mapped to ``[-1, 1]`` before the network. Raises
-    :class:`eventrecon.lpips_alex.LPIPSUnavailable` when the weights cannot be had.
+    :class:`eventrecon.evaluation.lpips.LPIPSUnavailable` when the weights cannot be had.
     ``device`` defaults to the device of ``pred`` when it is a tensor, else CPU.
     """
     if device is None:

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from eventrecon.errors import InputError, as_number
+from eventrecon.common.errors import InputError, as_number
 
 __all__ = [
     "LossConfig",

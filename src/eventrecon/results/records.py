@@ -9,9 +9,9 @@ A run folder holds
   evaluated, ``psnr, ssim, lpips`` (``lpips`` may be null with an ``lpips_note``),
   ``psnr_background`` (the empty field's score on the same frames), ``wall_s``,
   ``steps``, ``sec_per_it``, ``peak_mem_mb``, ``total_s``, ``machine``
-  (:mod:`eventrecon.machine`). ``status`` is one of
+  (:mod:`eventrecon.results.machine`). ``status`` is one of
   :data:`STATUSES`: ``ok``; ``collapsed`` (the field renders the empty scene,
-  :mod:`eventrecon.collapse`, with ``collapse_reason``); ``failed`` (with ``error``);
+  :mod:`eventrecon.engine.collapse`, with ``collapse_reason``); ``failed`` (with ``error``);
   ``partial`` (some segments of a ``data.segment=K`` sweep are still to train; never
   written, only returned);
 - ``curve.csv``: :data:`CURVE_HEADER` rows, ``kind`` = ``cheap`` (a subsampled held-out
@@ -41,10 +41,10 @@ from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from eventrecon.checkpointing import atomic_write_bytes, atomic_write_json
-from eventrecon.errors import InputError
-from eventrecon.naming import dataset_name, name_from_meta
-from eventrecon.precision import image_dtype, run_precision
+from eventrecon.common.errors import InputError
+from eventrecon.common.files import atomic_write_bytes, atomic_write_json
+from eventrecon.config.naming import dataset_name, name_from_meta
+from eventrecon.config.precision import image_dtype, run_precision
 
 __all__ = ["METHOD_VERSION", "METHOD_VERSIONS", "VERSION_SCOPE", "VERSION_KEYS", "made_version",
            "record_version", "stale_reason", "METRICS_FILE", "CURVE_FILE", "DONE_FILE",
@@ -113,7 +113,7 @@ def run_info(cfg: Any, meta: Mapping[str, Any], views: int | None = None,
              fps: float | None = None, data_id: str | None = None) -> dict[str, Any]:
     """What identifies a run in the reports: scene, model, loss, views, fps, experiment,
     tag and seed (``cfg`` is the run's composed config, ``meta`` the dataset's). The scene
-    is the dataset's own name for a ``data.root`` run (:mod:`eventrecon.naming`);
+    is the dataset's own name for a ``data.root`` run (:mod:`eventrecon.config.naming`);
     ``data_id`` the dataset folder's name (a simulated scene's carries the hash of its
     spec, so a changed scene makes earlier records of it stale: :func:`stale_reason`)."""
     name = (dataset_name(cfg.data.root, None) if cfg.data.get("root")

@@ -2,10 +2,10 @@
 
 Each function reads one setting (``model.optim``'s lr, weight decay, eps and Adam's
 betas; ``trainer``'s lr decay and warm-up), fills in its default (the authors' where they
-have one) and gives one :class:`~eventrecon.errors.InputError` naming the key for a value
+have one) and gives one :class:`~eventrecon.common.errors.InputError` naming the key for a value
 out of range or not a number, where AdamW or the schedule would otherwise fail later
-with a traceback or silently train with it. :func:`eventrecon.build.build_module` puts
-them into the step's :class:`~eventrecon.module.StepConfig`.
+with a traceback or silently train with it. :func:`eventrecon.engine.build.build_module` puts
+them into the step's :class:`~eventrecon.engine.module.StepConfig`.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import math
 
 from omegaconf import DictConfig, OmegaConf  # noqa: F401 - OmegaConf: the doctests
 
-from eventrecon.errors import InputError, as_number
+from eventrecon.common.errors import InputError, as_number
 
 __all__ = ["adam_betas", "lr_decay_start", "lr_end_factor", "lr_warmup", "optim_numbers"]
 

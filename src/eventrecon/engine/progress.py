@@ -10,7 +10,7 @@ it logs one plain line about every ``every_s`` seconds — no carriage-return fr
 
 ``mode``: ``auto`` (a bar when stderr is a terminal, else lines), ``bar``, ``log`` or
 ``none``. Long work outside training (full-image evaluation, simulation, reading a
-dataset) reports through :class:`eventrecon.taskprogress.TaskProgress`.
+dataset) reports through :class:`eventrecon.common.progress.TaskProgress`.
 """
 
 from __future__ import annotations
@@ -23,11 +23,11 @@ from typing import Any
 
 import lightning.pytorch as pl
 
-from eventrecon.taskprogress import format_seconds
+from eventrecon.common.progress import format_seconds
 
 __all__ = ["Progress", "progress_mode"]
 
-log = logging.getLogger("eventrecon.progress")
+log = logging.getLogger("eventrecon.engine.progress")
 
 
 def progress_mode(mode: str) -> str:
@@ -35,7 +35,7 @@ def progress_mode(mode: str) -> str:
     if mode == "auto":
         return "bar" if sys.stderr.isatty() else "log"
     if mode not in ("bar", "log", "none"):
-        from eventrecon.errors import InputError
+        from eventrecon.common.errors import InputError
 
         raise InputError("config", "trainer.progress", "auto, bar, log or none", mode)
     return mode

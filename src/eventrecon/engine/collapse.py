@@ -24,7 +24,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from eventrecon.errors import InputError
+from eventrecon.common.errors import InputError
 
 __all__ = ["CollapseRule", "opacity_collapsed", "collapse_reason"]
 

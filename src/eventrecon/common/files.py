@@ -14,10 +14,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import torch
-from lightning.pytorch.plugins.io import TorchCheckpointIO
-
-__all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_with", "AtomicCheckpointIO",
+__all__ = ["atomic_write_bytes", "atomic_write_json", "atomic_write_with",
            "remove_stale_temporaries"]
 
 
@@ -61,9 +58,3 @@ def atomic_write_json(path: str | Path, obj: Any) -> None:
     atomic_write_bytes(path, (json.dumps(obj, indent=2, sort_keys=True) + "\n").encode())
 
 
-class AtomicCheckpointIO(TorchCheckpointIO):
-    """Lightning checkpoint I/O that writes through :func:`atomic_write_with`."""
-
-    def save_checkpoint(self, checkpoint: dict[str, Any], path: str | Path,
-                        storage_options: Any | None = None) -> None:
-        atomic_write_with(path, lambda f: torch.save(checkpoint, f))

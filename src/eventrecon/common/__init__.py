@@ -1,0 +1,1 @@
+"""Shared helpers of every role: errors, colours, file writes, locks, progress."""

@@ -1,0 +1,1 @@
+"""Hydra configuration: resolvers, dataset names, override checks."""

@@ -1,0 +1,1 @@
+"""Training: the LightningModule, its losses, the runner, callbacks, checkpoints."""

@@ -1,0 +1,1 @@
+"""Held-out evaluation: rendering and scoring, PSNR/SSIM/LPIPS, summaries."""

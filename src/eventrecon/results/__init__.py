@@ -1,0 +1,1 @@
+"""What a run leaves: its records (metrics, curves, versions) and machine facts."""
