@@ -89,6 +89,22 @@ def _close(a: Tensor, b: Tensor, tol: float) -> bool:
     return (a - b).abs().max().item() <= tol * max(1.0, b.abs().max().item())
 
 
+def _agree(kernel: FactorisedField, ref: FactorisedField, coords: Tensor) -> Tensor:
+    """Assert the kernel's rank sum and factor gradients (under random output weights)
+    equal the reference field's to :func:`_tol`; the kernel's rank sum ``[N, F]``."""
+    dtype = coords.dtype
+    w = torch.randn(coords.shape[0], FEATURES, generator=torch.Generator().manual_seed(2),
+                    dtype=dtype)
+    out, g = _sum_and_grads(kernel, coords, w)
+    out_ref, g_ref = _sum_and_grads(ref, coords, w)
+    assert out.shape == (coords.shape[0], FEATURES) and out.dtype == dtype
+    tol = _tol(dtype)
+    assert _close(out, out_ref, tol)
+    for a, b in zip(g, g_ref):
+        assert _close(a, b, tol)
+    return out
+
+
 def _tol(dtype: torch.dtype) -> float:
     return 1e-5 if dtype == torch.float32 else 1e-12
 
@@ -105,14 +121,8 @@ def test_cp_values_and_gradients_agree_with_the_reference(dtype, rank, sizes, al
     kernel = _cp(rank, sizes, "numba", dtype, align, padding)
     ref = _cp(rank, sizes, "torch", dtype, align, padding)
     coords = _coords(700, dtype)
-    w = torch.randn(700, FEATURES, generator=torch.Generator().manual_seed(2), dtype=dtype)
-    out, g = _sum_and_grads(kernel, coords, w)
-    out_ref, g_ref = _sum_and_grads(ref, coords, w)
-    assert out.shape == (700, FEATURES) and out.dtype == dtype
+    out = _agree(kernel, ref, coords)
     tol = _tol(dtype)
-    assert _close(out, out_ref, tol)
-    for a, b in zip(g, g_ref):
-        assert _close(a, b, tol)
     # an independent reference: the explicit corner gather, in float64
     s = [sample_grid_reference(line.double(), coords[:, a:a + 1].double(), align, padding).t()
          for a, line in enumerate(kernel.grids.factors)]
@@ -201,14 +211,8 @@ def test_hex_values_and_gradients_agree_with_the_reference(dtype, layout, paddin
     kernel = _hex("numba", layout=layout, dtype=dtype, padding=padding)
     ref = _hex("torch", layout=layout, dtype=dtype, padding=padding)
     coords = _coords(900, dtype)
-    w = torch.randn(900, FEATURES, generator=torch.Generator().manual_seed(2), dtype=dtype)
-    out, g = _sum_and_grads(kernel, coords, w)
-    out_ref, g_ref = _sum_and_grads(ref, coords, w)
-    assert out.shape == (900, FEATURES) and out.dtype == dtype
+    out = _agree(kernel, ref, coords)
     tol = _tol(dtype)
-    assert _close(out, out_ref, tol)
-    for a, b in zip(g, g_ref):
-        assert _close(a, b, tol)
     # an independent reference: the explicit corner gathers, in float64
     grids = kernel.grids
     s = [sample_grid_reference(p.double(), coords[:, list(ax)].double(), ac, padding).t()

@@ -9,6 +9,7 @@ import re
 
 import pytest
 import torch
+from test_hashgrid import _edge_points
 
 import eventrecon.kernels.hash_grid as hash_grid
 from baselines.ngp import HashEncoding
@@ -23,17 +24,6 @@ def _one_thread():
     for two inside."""
     with torch_threads(1):
         yield
-
-
-def _edge_points(n: int, seed: int = 1) -> torch.Tensor:
-    """Random points in [0,1]^4 plus the box corners/faces, and points slightly outside."""
-    g = torch.Generator().manual_seed(seed)
-    u = torch.rand(n, 4, generator=g)
-    special = torch.tensor([0.0, 1.0, -1e-3, 1 + 1e-3, -0.5, 2.0, 1 - 1e-7])
-    pick = torch.randint(0, len(special), (n // 2, 4), generator=g)
-    mask = torch.rand(n // 2, 4, generator=g) < 0.5
-    u[: n // 2] = torch.where(mask, special[pick], u[: n // 2])
-    return u
 
 
 def _paper_cpu_encoding(implementation: str) -> HashEncoding:

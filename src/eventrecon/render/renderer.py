@@ -26,6 +26,7 @@ pixel) but must give each row its own time.
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -132,6 +133,15 @@ class Renderer(nn.Module):
         """:func:`image_autocast` of :attr:`image_dtype` on ``device``."""
         return image_autocast(self.image_dtype, device)
 
+    def image_rows(self, model: nn.Module, cams: Cameras, view: int, device: torch.device
+                   ) -> Callable[[slice, Tensor, Tensor], dict[str, Tensor]]:
+        """How :meth:`render_image` renders a slice of the view's row-major pixels:
+        ``(rows, t [n, 1], bg [n, 3]) -> the last level's dict``. By default the pixel
+        centres through :meth:`forward`; a renderer with a cheaper image path overrides it."""
+        uv = cams.pixel_grid()
+        views = torch.full((uv.shape[0],), int(view), dtype=torch.long)
+        return lambda j, t, bg: self.forward(model, cams, views[j], uv[j], t, bg)[-1]
+
     @torch.no_grad()
     def render_image(self, model: nn.Module, cams: Cameras, view: int, t: float,
                      bg_image: Tensor | float | None = None, chunk: int | None = None
@@ -153,8 +163,7 @@ class Renderer(nn.Module):
         """
         device = model_device(model)
         h, w = cams.height, cams.width
-        uv = cams.pixel_grid()
-        views = torch.full((h * w,), int(view), dtype=torch.long)
+        render_rows = self.image_rows(model, cams, view, device)
         bg = background_rows(bg_image, h, w, device)
         tt = torch.full((h * w, 1), float(t), device=device)
         chunk = int(chunk or self.chunk)
@@ -162,7 +171,7 @@ class Renderer(nn.Module):
         with self.image_autocast(device):
             for i in range(0, h * w, chunk):
                 j = slice(i, i + chunk)
-                level = self.forward(model, cams, views[j], uv[j], tt[j], bg[j])[-1]
+                level = render_rows(j, tt[j], bg[j])
                 for key in parts:
                     parts[key].append(level[key].float())
         return {"rgb": torch.cat(parts["rgb"]).reshape(h, w, 3),

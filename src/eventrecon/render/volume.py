@@ -27,6 +27,7 @@ none, so it is left out: the one place where this quadrature differs from theirs
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -37,7 +38,7 @@ from eventrecon.fields.base import Field
 from eventrecon.render.clipping import INSIDE_TOL
 from eventrecon.render.occupancy import OccupancyGrid, OccupancyUpdate
 from eventrecon.render.queries import query_density, query_field
-from eventrecon.render.renderer import Renderer, background_rows, model_device
+from eventrecon.render.renderer import Renderer
 from eventrecon.render.samplers import TAU_MAX, pdf_bins, sample_pdf, step_sizes, stratified
 
 if TYPE_CHECKING:
@@ -346,26 +347,10 @@ class VolumeRenderer(Renderer):
         self.field_inputs = 0
         return self.render_rays(model, o, d, t, bg, perturb, gen, copies)
 
-    @torch.no_grad()
-    def render_image(self, model: Field, cams: Cameras, view: int, t: float,
-                     bg_image: Tensor | float | None = None, chunk: int | None = None
-                     ) -> dict[str, Tensor]:
-        """:meth:`Renderer.render_image` through the view's cached rays
+    def image_rows(self, model: Field, cams: Cameras, view: int, device: torch.device
+                   ) -> Callable[[slice, Tensor, Tensor], dict[str, Tensor]]:
+        """:meth:`Renderer.image_rows` through the view's cached rays
         (:meth:`~eventrecon.render.cameras.Cameras.image_rays`)."""
-        device = model_device(model)
-        h, w = cams.height, cams.width
         o, d = cams.image_rays(view)
         o, d = o.to(device), d.to(device)
-        bg = background_rows(bg_image, h, w, device)
-        tt = torch.full((h * w, 1), float(t), device=device)
-        chunk = int(chunk or self.chunk)
-        parts: dict[str, list[Tensor]] = {"rgb": [], "opacity": [], "depth": []}
-        with self.image_autocast(device):
-            for i in range(0, h * w, chunk):
-                j = slice(i, i + chunk)
-                level = self.render_rays(model, o[j], d[j], tt[j], bg[j])[-1]
-                for key in parts:
-                    parts[key].append(level[key].float())
-        return {"rgb": torch.cat(parts["rgb"]).reshape(h, w, 3),
-                "opacity": torch.cat(parts["opacity"]).reshape(h, w),
-                "depth": torch.cat(parts["depth"]).reshape(h, w)}
+        return lambda j, t, bg: self.render_rays(model, o[j], d[j], t, bg)[-1]
