@@ -42,11 +42,13 @@ def _pick_trainer_preset(argv: list[str]) -> list[str]:
 @hydra.main(config_path="conf", config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float | None:
     from eventrecon.common.errors import InputError
+    from eventrecon.common.malloc import retain_freed_memory
     from eventrecon.engine.module import NonFiniteLossError
     from eventrecon.engine.runner import run
     from eventrecon.results.records import finished_metrics
 
     _one_log_stream()
+    retain_freed_memory()  # a step's freed activations stay in the heap (eventrecon.common.malloc)
 
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     multirun = HydraConfig.get().mode == RunMode.MULTIRUN

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import eventrecon
 from eventrecon.common.errors import InputError
+from eventrecon.common.malloc import retain_freed_memory
 
 log = logging.getLogger("benchmarks")
 
@@ -52,6 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     logging.getLogger("eventrecon").setLevel(logging.WARNING)
+    retain_freed_memory()
     warning = foreign_package(Path(__file__).parent, Path(eventrecon.__file__))
     if warning:
         log.warning(warning)

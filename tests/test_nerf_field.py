@@ -113,6 +113,23 @@ def test_a_window_of_ones_is_skipped_exactly_and_a_loaded_window_is_applied() ->
     assert on.pos_enc.weights[2] == 0.0 < on.pos_enc.weights[0]
 
 
+@pytest.mark.parametrize("step", [0, 150, 333, 10_000])
+def test_encoding_is_the_written_out_formula_in_the_dtype_asked(step: int) -> None:
+    """Only the bands that are on are computed; the result is the band-by-band formula
+    with the window applied, and in bf16 the cast of the float32 encoding."""
+    enc = PositionalEncoding(3, 5, anneal_steps=1000)
+    enc.set_progress(step)
+    x = torch.rand(11, 3) * 2 - 1
+    w = torch.tensor(band_window(5, step, 1000))
+    parts = [x]
+    for k in range(5):
+        parts += [w[k] * torch.sin(2.0 ** k * x), w[k] * torch.cos(2.0 ** k * x)]
+    ref = torch.cat(parts, dim=-1)
+    assert torch.allclose(enc(x), ref, atol=1e-7, rtol=0)
+    assert enc.bands_on == int((w > 0).sum())
+    assert torch.equal(enc(x, torch.bfloat16), enc(x).to(torch.bfloat16))
+
+
 def test_band_annealing_callback_sets_every_encoding() -> None:
     field = NeRFField(depth=2, width=8, skip=-1, pos_bands=5, time_bands=3, anneal_steps=1000)
     (callback,) = field.callbacks()
@@ -160,14 +177,18 @@ def test_nerf_field_is_the_authors_layers_and_initialisation() -> None:
     assert f.colour_hidden.weight.abs().max().item() <= bound
     # the forward pass written out: 2·relu, [encoding, h] after layer `skip`, linear remap
     x, t = torch.rand(7, 3) * 2 - 1, torch.rand(7, 1)
+    def lin(layer: nn.Linear, h: torch.Tensor) -> torch.Tensor:
+        return h @ layer.weight.T + layer.bias
+
     enc = f.encode(x, t)
-    h0 = 2 * torch.relu(f.layers[0](enc))
-    h1 = 2 * torch.relu(f.layers[1](torch.cat([enc, h0], -1)))
-    h2 = 2 * torch.relu(f.layers[2](h1))
-    sigma = torch.nn.functional.softplus(f.density(h2)).squeeze(-1)
-    rgb = torch.sigmoid(f.colour_out(2 * torch.relu(f.colour_hidden(f.colour_remap(h2)))))
+    h0 = 2 * torch.relu(lin(f.layers[0], enc))
+    h1 = 2 * torch.relu(lin(f.layers[1], torch.cat([enc, h0], -1)))
+    h2 = 2 * torch.relu(lin(f.layers[2], h1))
+    sigma = torch.nn.functional.softplus(lin(f.density, h2)).squeeze(-1)
+    rgb = torch.sigmoid(lin(f.colour_out,
+                            2 * torch.relu(lin(f.colour_hidden, lin(f.colour_remap, h2)))))
     got = f(x, t)
-    assert torch.equal(got[0], sigma) and torch.equal(got[1], rgb)
+    assert torch.allclose(got[0], sigma, atol=1e-6) and torch.allclose(got[1], rgb, atol=1e-6)
 
 
 def test_the_layers_are_modules_whose_hooks_run() -> None:

@@ -55,5 +55,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    from eventrecon.common.malloc import retain_freed_memory
+
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    retain_freed_memory()
     raise SystemExit(main())

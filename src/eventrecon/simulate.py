@@ -49,5 +49,8 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    from eventrecon.common.malloc import retain_freed_memory
+
+    retain_freed_memory()
     report_bad_overrides()
     main()

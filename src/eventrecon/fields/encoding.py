@@ -114,15 +114,32 @@ class PositionalEncoding(nn.Module):
         self.window.copy_(window)
         self._set_weights(window.tolist())       # from the host copy: no device sync
 
-    def forward(self, x: Tensor) -> Tensor:
-        """Encode ``x [N, D]`` into ``[N, D (1 + 2L)]`` (layout in the module docstring)."""
-        if self.n_bands == 0:
-            return x
-        xb = x[:, None, :] * self.freqs[:, None].to(x.dtype)          # [N, L, D]
-        feats = torch.cat([torch.sin(xb), torch.cos(xb)], dim=-1)      # [N, L, 2D]
-        if not self._all_on:                     # ×1 is exact: skip the pass once all are on
-            feats = feats * self.window[:, None].to(x.dtype)
-        return torch.cat([x, feats.reshape(x.shape[0], 2 * self.n_bands * self.in_dim)], dim=-1)
+    @property
+    def bands_on(self) -> int:
+        """How many bands have ``w_k > 0``: the window is non-increasing in ``k``, so
+        they are the first ones."""
+        return sum(w > 0.0 for w in self._weights)
+
+    def forward(self, x: Tensor, dtype: torch.dtype | None = None) -> Tensor:
+        """Encode ``x [N, D]`` into ``[N, D (1 + 2L)]`` (layout in the module docstring)
+        in ``dtype`` (default ``x``'s; a caller under autocast passes autocast's, the
+        cast its first layer would make: the same values, written once at half the size).
+
+        The angles, ``sin`` and ``cos`` are computed in ``x``'s dtype for the bands that
+        are on only; the columns of the bands that are off are zeros (early in annealing
+        most are)."""
+        n, d = x.shape
+        out = x.new_zeros(n, self.out_dim, dtype=dtype or x.dtype)
+        out[:, :d] = x
+        k = self.bands_on
+        if k:
+            xb = (x[:, :, None] * self.freqs[:k].to(x.dtype)).transpose(1, 2)  # [N, k, D]
+            sin, cos = torch.sin(xb), torch.cos(xb)
+            if not self._all_on:                 # ×1 is exact: skip the pass once all are on
+                w = self.window[:k, None].to(x.dtype)
+                sin, cos = sin * w, cos * w
+            out[:, d:d + 2 * k * d] = torch.stack([sin, cos], dim=2).view(n, 2 * k * d)
+        return out
 
     def extra_repr(self) -> str:
         return f"in_dim={self.in_dim}, n_bands={self.n_bands}, anneal_steps={self.anneal_steps}"

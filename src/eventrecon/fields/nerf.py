@@ -15,7 +15,11 @@ As the authors' code builds it (``docs/method.md`` "Network"):
 
 ``γ_L`` is :class:`~eventrecon.fields.encoding.PositionalEncoding` (raw input + sin/cos
 at 2^0..2^{L−1}, bands eased in over ``anneal_steps``). The activation is ``2·ReLU``
-(the authors' ``MyReLU``). The skip concatenates the input encoding to the output of
+(the authors' ``MyReLU``), computed as ``ReLU(2 W h + 2 b)``: the layers before it are
+:class:`DoubledLinear` modules, whose output ``2 (W h + b)`` costs a product over the
+``[out, in]`` weight instead of a pass over the ``[N, out]`` activations each way, and
+equals the doubled sum bit for bit (a power of two scales exactly, in fp32 and under bf16
+autocast). The skip concatenates the input encoding to the output of
 layer ``skip`` (0-based): with depth 8 and skip 4 the sixth linear layer takes
 ``in_dim + width`` inputs. Initialisation: hidden and colour layers PyTorch's default;
 the density head xavier-uniform with gain ``density_init_gain`` (1) and bias drawn from
@@ -41,12 +45,26 @@ from eventrecon.common.errors import InputError
 from eventrecon.fields.base import Field
 from eventrecon.fields.encoding import BandAnnealing, PositionalEncoding
 
-__all__ = ["NeRFField"]
+__all__ = ["DoubledLinear", "NeRFField"]
 
 
 #: Zeroed view-direction features the authors concatenate before the hidden colour layer
 #: (an Embedder of 3 inputs with 4 bands: 3 + 3·4·2); they set that layer's init range.
 ZEROED_VIEWDIR_FEATURES = 27
+
+
+class DoubledLinear(nn.Linear):
+    """``2 (W h + b)`` → ``[N, out]`` for ``h [N, in]``: a linear layer whose output is
+    doubled through its parameters, so that ``relu`` of it is the authors' ``2·ReLU``.
+
+    >>> layer = DoubledLinear(2, 1)
+    >>> h = torch.ones(1, 2)
+    >>> bool(torch.equal(layer(h), 2 * nn.functional.linear(h, layer.weight, layer.bias)))
+    True
+    """
+
+    def forward(self, h: Tensor) -> Tensor:
+        return F.linear(h, 2.0 * self.weight, 2.0 * self.bias)
 
 
 class NeRFField(Field):
@@ -99,12 +117,12 @@ class NeRFField(Field):
         self.density_shift = float(density_shift)
         dims_in = [in_dim] + [width + (in_dim if i - 1 == self.skip else 0)
                               for i in range(1, depth)]
-        self.layers = nn.ModuleList(nn.Linear(n, width) for n in dims_in)
+        self.layers = nn.ModuleList(DoubledLinear(n, width) for n in dims_in)
         self.density = nn.Linear(width, 1)
         nn.init.xavier_uniform_(self.density.weight, gain=density_init_gain)
         nn.init.normal_(self.density.bias, mean=0.0, std=density_init_gain)
         self.colour_remap = nn.Linear(width, remap_width)
-        self.colour_hidden = nn.Linear(remap_width, colour_width)
+        self.colour_hidden = DoubledLinear(remap_width, colour_width)
         bound = 1.0 / math.sqrt(remap_width + ZEROED_VIEWDIR_FEATURES)
         nn.init.uniform_(self.colour_hidden.weight, -bound, bound)
         nn.init.uniform_(self.colour_hidden.bias, -bound, bound)
@@ -117,13 +135,11 @@ class NeRFField(Field):
 
     def encode(self, xyz: Tensor, t: Tensor) -> Tensor:
         """``[N, in_dim]`` input encoding ``[γ(x), γ(t)]`` (the authors' layout; the layers'
-        weights are stored for it)."""
-        return torch.cat([self.pos_enc(xyz), self.time_enc(t.to(xyz.dtype))], dim=-1)
-
-    @staticmethod
-    def activation(x: Tensor) -> Tensor:
-        """The authors' ``MyReLU``: ``2·ReLU(x)``."""
-        return 2.0 * F.relu(x)
+        weights are stored for it), in autocast's dtype where it is active."""
+        device = xyz.device.type
+        dtype = torch.get_autocast_dtype(device) if torch.is_autocast_enabled(device) else None
+        return torch.cat([self.pos_enc(xyz, dtype), self.time_enc(t.to(xyz.dtype), dtype)],
+                         dim=-1)
 
     def trunk(self, xyz: Tensor, t: Tensor) -> Tensor:
         """``h [N, width]``: the hidden layers on the encoding, the encoding concatenated
@@ -131,7 +147,7 @@ class NeRFField(Field):
         feats = self.encode(xyz, t)
         h = feats
         for i, layer in enumerate(self.layers):
-            h = self.activation(layer(h))
+            h = F.relu(layer(h), inplace=True)            # 2·ReLU(W h + b)
             if i == self.skip:
                 h = torch.cat([feats, h], dim=-1)
         return h
@@ -151,7 +167,7 @@ class NeRFField(Field):
             ``(sigma [N] ≥ 0, rgb [N, 3] in (0, 1))``.
         """
         h = self.trunk(xyz, t)
-        hidden = self.activation(self.colour_hidden(self.colour_remap(h)))
+        hidden = F.relu(self.colour_hidden(self.colour_remap(h)), inplace=True)
         return self._density(h), torch.sigmoid(self.colour_out(hidden))
 
     def callbacks(self) -> list[Any]:
