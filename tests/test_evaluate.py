@@ -76,12 +76,15 @@ def test_background_only_score_is_what_an_empty_field_renders(run_dir: Path):
     assert trained["psnr_background"] == pytest.approx(got["psnr_background"])
 
 
-def test_colour_corrected_variant_is_separate_and_off_by_default(run_dir: Path):
+def test_colour_corrected_variants_are_separate_and_off_by_default(run_dir: Path):
     assert main([f"run={run_dir}", "color_correct=true"]) == 0
-    cc = json.loads((run_dir / "metrics_eval_cc.json").read_text())
+    assert main([f"run={run_dir}", "color_correct=eventnerf"]) == 0
+    cc = json.loads((run_dir / "metrics_eval_per_image.json").read_text())
+    joint = json.loads((run_dir / "metrics_eval_eventnerf.json").read_text())
     plain = json.loads((run_dir / "metrics_eval.json").read_text())
-    assert cc["color_corrected"] is True and plain["color_corrected"] is False
-    assert cc["psnr"] != plain["psnr"]
+    assert (cc["color_corrected"], joint["color_corrected"], plain["color_corrected"]) == (
+        "per_image", "eventnerf", "none")
+    assert len({cc["psnr"], joint["psnr"], plain["psnr"]}) == 3
 
 
 def test_an_interrupted_run_evaluates_from_its_last_checkpoints(run_dir: Path, tmp_path: Path):
@@ -120,7 +123,8 @@ def test_images_render_in_the_precision_the_run_trained_with(run_dir: Path, tmp_
     (["run=/nowhere"], "/nowhere/.hydra/config.yaml: <file>: expected the run's saved Hydra"),
     (["run=x", "ckpt=first"], "ckpt: expected last or best, got first"),
     (["run=x", "colour=true"], "usage: python -m eventrecon.evaluate"),
-    (["run=x", "color_correct=ture"], "color_correct: expected true or false, got ture"),
+    (["run=x", "color_correct=ture"],
+     "color_correct: expected one of none, per_image, eventnerf, got ture"),
 ])
 def test_bad_arguments_are_one_line(argv: list[str], expected: str, caplog):
     with caplog.at_level(logging.ERROR):

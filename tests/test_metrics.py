@@ -80,10 +80,33 @@ def test_color_correct_recovers_log_affine_distortion():
     fixed = color_correct(pred, gt, eps=eps)
     assert psnr(fixed, gt) > 120
     out = evaluate_images(pred, gt, lpips=False, color_correct=True)
-    assert out["psnr"] > 120 and out["color_corrected"] is True
+    assert out["psnr"] > 120 and out["color_corrected"] == "per_image"
     assert out["ssim"] == pytest.approx(1.0, abs=1e-9)
     # off by default: the raw PSNR is reported
     assert evaluate_images(pred, gt, lpips=False)["psnr"] == pytest.approx(psnr(pred, gt))
+
+
+def test_joint_correction_is_one_fit_in_log_linear_space_over_all_images():
+    """EventNeRF's correction undoes one tone curve shared by all images exactly, but not
+    a different curve per image (which the per-image fit undoes)."""
+    rng = np.random.default_rng(4)
+    gt = rng.uniform(0.2, 0.9, (3, 16, 16, 3))
+    a, b = np.array([1.05, 1.1, 0.97]), np.array([-0.02, 0.03, 0.01])
+    v = np.log(gt ** 2.2 + 0.1)                        # gt's log-linear values
+    lin = np.exp((v - b) / a) - 0.1                    # so that a·log(lin + 0.1) + b = v
+    assert 0 < lin.min() and lin.max() < 1
+    pred = lin ** (1 / 2.2)
+    assert psnr(pred, gt) < 35
+    out = evaluate_images(pred, gt, lpips=False, color_correct="eventnerf")
+    assert out["psnr"] > 100 and out["color_corrected"] == "eventnerf"
+    # per-image curves: the joint fit leaves an error, the per-image one (in its space) less
+    scale = np.array([0.7, 1.0, 1.4])[:, None, None, None]
+    each = np.clip(pred * scale, 0, 1)
+    joint = evaluate_images(each, gt, lpips=False, color_correct="eventnerf")["psnr"]
+    per = evaluate_images(each, gt, lpips=False, color_correct="per_image")["psnr"]
+    assert joint < 40 and per > joint
+    with pytest.raises(InputError, match="color_correct"):
+        evaluate_images(pred, gt, lpips=False, color_correct="joint")
 
 
 def test_bad_shapes_raise_input_error():

@@ -138,7 +138,7 @@ class HeldOutMonitor(L.Callback):
                     gts.append(gt.reshape(-1, 3)[self.pix.numpy()])
         field.train(was_training)
         if full:
-            m = score_images(preds, gts, lpips=True)
+            m = score_images(preds, gts, lpips=("alex",))     # the curve's LPIPS-Alex
             row = {"psnr": m["psnr"], "ssim": m["ssim"], "lpips": m.get("lpips")}
             n_views = len(cams)
             over_time = np.concatenate(  # view 0 at each evaluated time: render | truth

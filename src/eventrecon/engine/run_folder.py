@@ -24,6 +24,7 @@ from eventrecon.data.types import SplitData
 from eventrecon.engine.build import load_dataset, load_segment, scene_properties
 from eventrecon.engine.segments import run_segments, run_window
 from eventrecon.evaluation.heldout import render_and_score
+from eventrecon.evaluation.metrics import correction_mode
 from eventrecon.fields.base import Field
 from eventrecon.render.renderer import Renderer
 from eventrecon.results.records import METRICS_FILE, read_metrics, run_info
@@ -79,7 +80,7 @@ def run_config(run_dir: str | Path) -> DictConfig:
     return OmegaConf.load(cfg_path)
 
 
-def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False) -> dict:
+def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool | str = "none") -> dict:
     """Re-evaluate a finished or interrupted run from its saved config and checkpoints.
 
     Every held-out view at every ground-truth time (the paper's protocol; the run's own
@@ -87,8 +88,10 @@ def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False)
     ``ckpt="last"`` (default) scores the final weights; ``"best"`` the checkpoint that
     scored best on the held-out views during training (a choice made on the test data
     itself, so not an unbiased score). Renders go to ``eval_<ckpt>/renders/``; the
-    metrics to ``metrics_eval.json`` (``metrics_eval_cc.json`` with colour correction)
-    beside the run's ``metrics.json``.
+    metrics to ``metrics_eval.json``
+    beside the run's ``metrics.json``; with a colour correction (``per_image`` or
+    ``eventnerf``, :data:`~eventrecon.evaluation.metrics.CORRECTIONS`) to
+    ``metrics_eval_<correction>.json``.
     """
     run_dir = Path(run_dir)
     cfg = run_config(run_dir)
@@ -111,6 +114,7 @@ def evaluate_run(run_dir: Path, ckpt: str = "last", color_correct: bool = False)
                "image_autocast": image_dtype(cfg.render, trained, device.type) is not None,
                **render_and_score(models, segments, heldout, views, frames,
                                   run_dir / f"eval_{ckpt}", cfg.render.chunk, color_correct)}
-    name = "metrics_eval.json" if not color_correct else "metrics_eval_cc.json"
+    mode = correction_mode(color_correct)
+    name = "metrics_eval.json" if mode == "none" else f"metrics_eval_{mode}.json"
     atomic_write_json(run_dir / name, metrics)
     return metrics

@@ -164,8 +164,9 @@ def train_segment(cfg: DictConfig, props: SceneProperties, train: SplitData,
 
 
 #: Final scores shown in TensorBoard (``final/<key>``), when the run has them.
-FINAL_SCALARS: tuple[str, ...] = ("psnr", "ssim", "lpips", "psnr_background", "gain_psnr",
-                                  "psnr_subject", "ssim_subject", "gain_psnr_subject")
+FINAL_SCALARS: tuple[str, ...] = ("psnr", "ssim", "lpips", "lpips_vgg", "psnr_background",
+                                  "gain_psnr", "psnr_subject", "ssim_subject",
+                                  "gain_psnr_subject")
 
 
 def _log_final(cfg: DictConfig, out_dir: Path, metrics: dict[str, Any]) -> None:

@@ -71,7 +71,8 @@ def encode(linear: np.ndarray) -> np.ndarray:
 
 
 def score_images(preds_lin: Sequence[np.ndarray], gts_u8: Sequence[np.ndarray],
-                 lpips: bool = True, color_correct: bool = False) -> dict:
+                 lpips: bool | tuple[str, ...] = True,
+                 color_correct: bool | str = "none") -> dict:
     """PSNR / SSIM / LPIPS of linear renders ``[H, W, 3]`` against stored frames
     (:func:`eventrecon.evaluation.metrics.evaluate_images` on the encoded images)."""
     return evaluate_images([encode(p) for p in preds_lin],
@@ -89,7 +90,7 @@ def cheap_psnr(preds_lin: Sequence[np.ndarray], gts_u8: Sequence[np.ndarray]) ->
 
 def evaluate_heldout(renders_lin: np.ndarray, split: SplitData, views: Sequence[int],
                      frame_idx: Sequence[int], lpips: bool = True,
-                     color_correct: bool = False) -> dict:
+                     color_correct: bool | str = "none") -> dict:
     """PSNR / SSIM / LPIPS of the renders ``[F, V, H, W, 3]`` against the ground-truth PNGs.
 
     Also ``psnr_background``: the PSNR of the background alone (what a field with zero
@@ -145,7 +146,7 @@ def write_renders(renders_lin: np.ndarray, split: SplitData, views: Sequence[int
 
 def render_and_score(models: list[tuple[Field, Renderer]], segments: list[Segment],
                      heldout: SplitData, views: list[int], frames: list[int], out_dir: Path,
-                     chunk: int, color_correct: bool = False) -> dict[str, Any]:
+                     chunk: int, color_correct: bool | str = "none") -> dict[str, Any]:
     """Render the held-out ``views`` at ``frames`` (cross-fading segments), write the PNGs
     and GIFs below ``out_dir`` and return PSNR / SSIM / LPIPS (and ``psnr_background``)."""
     renders = render_heldout(models, segments, heldout, views, frames, chunk=chunk)

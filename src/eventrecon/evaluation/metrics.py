@@ -1,4 +1,4 @@
-"""Image quality metrics: PSNR, SSIM, LPIPS (AlexNet) and an optional colour correction.
+"""Image quality metrics: PSNR, SSIM, LPIPS-Alex and LPIPS-VGG, and an optional colour correction.
 
 Images are ``[H, W, 3]`` (or batched ``[N, H, W, 3]``) float arrays in ``[0, 1]``,
 numpy or torch (any device). Conventions of the paper's evaluation:
@@ -6,12 +6,17 @@ numpy or torch (any device). Conventions of the paper's evaluation:
 - PSNR ``= -10 log10(mean((pred - gt)²))`` (peak 1); ``inf`` for identical images.
 - SSIM: :func:`skimage.metrics.structural_similarity` with ``data_range=1`` and
   ``channel_axis=-1`` (Gaussian-free 7×7 window, scikit-image defaults).
-- LPIPS: :class:`eventrecon.evaluation.lpips.LPIPSAlex` on inputs mapped to ``[-1, 1]``
-  (``2x - 1``). When the AlexNet weights cannot be had, LPIPS is *unavailable*:
-  :func:`evaluate_images` returns ``lpips=None`` and a one-line ``lpips_note``, never 0.
-- Colour correction (off by default, as in the earlier EventNeRF evaluation): per image
-  and channel, fit ``log(gt + eps) ≈ a·log(pred + eps) + b`` by least squares and
-  replace ``pred`` by ``exp(a·log(pred + eps) + b) - eps`` clipped to ``[0, 1]``.
+- LPIPS: :class:`eventrecon.evaluation.lpips.LPIPS` on inputs mapped to ``[-1, 1]``
+  (``2x - 1``), with the AlexNet trunk (key ``lpips``, the paper's) and the VGG16 trunk
+  (key ``lpips_vgg``). When a network's weights cannot be had, its LPIPS is
+  *unavailable*: :func:`evaluate_images` returns ``None`` and a one-line note
+  (``lpips_note``, ``lpips_vgg_note``), never 0.
+- Colour correction (:data:`CORRECTIONS`, ``none`` by default): ``per_image`` fits, per
+  image and channel, ``log(gt + eps) ≈ a·log(pred + eps) + b`` by least squares on the
+  encoded values and replaces ``pred`` by ``exp(a·log(pred + eps) + b) - eps`` clipped to
+  ``[0, 1]`` (:func:`color_correct`); ``eventnerf`` is EventNeRF's evaluation: one such
+  fit per channel over every pixel of every image jointly, in linear radiance with an
+  offset of 0.1 (:func:`color_correct_joint`).
 
 >>> import numpy as np
 >>> gt = np.full((8, 8, 3), 0.5); pred = gt + 0.1
@@ -29,8 +34,9 @@ import numpy as np
 import torch
 from skimage.metrics import structural_similarity
 
+from eventrecon.common.colour import GAMMA
 from eventrecon.common.errors import InputError
-from eventrecon.evaluation.lpips import LPIPSUnavailable, load_lpips_alex
+from eventrecon.evaluation.lpips import NETS, LPIPSUnavailable, load_lpips
 
 log = logging.getLogger(__name__)
 
@@ -119,10 +125,14 @@ def subject_scores(pred: ArrayLike, gt: ArrayLike, mask: np.ndarray) -> dict[str
     return {"psnr_subject": float(np.mean(ps)), "ssim_subject": float(np.mean(ss))} if ps else {}
 
 
+#: The result key of each LPIPS network in :func:`evaluate_images` (its note: ``<key>_note``).
+LPIPS_KEYS: dict[str, str] = {"alex": "lpips", "vgg": "lpips_vgg"}
+
+
 def lpips(
-    pred: ArrayLike, gt: ArrayLike, device: torch.device | str | None = None
+    pred: ArrayLike, gt: ArrayLike, device: torch.device | str | None = None, net: str = "alex"
 ) -> float:
-    """LPIPS-Alex v0.1 distance (lower is better); mean over a batch.
+    """LPIPS v0.1 distance with the ``net`` trunk (lower is better); mean over a batch.
 
     Inputs in ``[0, 1]`` are mapped to ``[-1, 1]`` before the network. Raises
     :class:`eventrecon.evaluation.lpips.LPIPSUnavailable` when the weights cannot be had.
@@ -131,13 +141,16 @@ def lpips(
     if device is None:
         device = pred.device if isinstance(pred, torch.Tensor) else "cpu"
     p, g = _pair(pred, gt)
-    net = load_lpips_alex(device)
+    if min(p.shape[1:3]) < NETS[net].min_size:
+        raise LPIPSUnavailable(f"{NETS[net].label}: {p.shape[1]}×{p.shape[2]} images are "
+                               f"smaller than its {NETS[net].min_size} px")
+    model = load_lpips(net, device)
     vals = []
     with torch.no_grad():
         for a, b in zip(p, g):
             ta = torch.as_tensor(a, dtype=torch.float32, device=device).permute(2, 0, 1)[None]
             tb = torch.as_tensor(b, dtype=torch.float32, device=device).permute(2, 0, 1)[None]
-            vals.append(float(net(2 * ta - 1, 2 * tb - 1)[0]))
+            vals.append(float(model(2 * ta - 1, 2 * tb - 1)[0]))
     return float(np.mean(vals))
 
 
@@ -173,51 +186,102 @@ def color_correct(pred: ArrayLike, gt: ArrayLike, eps: float = 1e-2) -> np.ndarr
     return out[0] if single else out
 
 
+def color_correct_joint(pred: ArrayLike, gt: ArrayLike, offset: float = 0.1) -> np.ndarray:
+    """EventNeRF's colour correction: one per-channel affine fit in log-linear space over
+    all pixels of all images jointly.
+
+    With ``lin(x) = x^2.2`` (the dataset's gamma), ``u = log(lin(pred) + offset)`` and
+    ``v = log(lin(gt) + offset)``, for each channel ``c``: ``(a_c, b_c) = argmin
+    Σ_{n,h,w} (a_c u + b_c − v)²``; then ``pred' = clip(exp(a_c u + b_c) − offset, 0,
+    1)^(1/2.2)``. One fit for the run's whole held-out set corrects its global tone and
+    white balance, not each image's.
+
+    Returns float64 ``[N,H,W,3]`` (or ``[H,W,3]`` for a single image input).
+
+    >>> import numpy as np
+    >>> gt = np.linspace(0.1, 0.9, 96).reshape(2, 4, 4, 3)
+    >>> lin = np.exp(0.8 * np.log(gt ** GAMMA + 0.1) + 0.05) - 0.1   # one tone curve
+    >>> bool(np.abs(color_correct_joint(lin ** (1 / GAMMA), gt) - gt).max() < 1e-9)
+    True
+    """
+    single = _as_numpy(pred).ndim == 3
+    p, g = _pair(pred, gt)
+    u = np.log(np.clip(p, 0, 1) ** GAMMA + offset)
+    v = np.log(np.clip(g, 0, 1) ** GAMMA + offset)
+    out = np.empty_like(p)
+    for c in range(3):
+        x, y = u[..., c].ravel(), v[..., c].ravel()
+        a, b = np.polyfit(x, y, 1) if np.ptp(x) > 0 else (0.0, float(y.mean()))
+        out[..., c] = np.clip(np.exp(a * u[..., c] + b) - offset, 0.0, 1.0) ** (1.0 / GAMMA)
+    return out[0] if single else out
+
+
+#: Colour corrections before the metrics (module docstring); ``none`` is the default.
+CORRECTIONS: tuple[str, ...] = ("none", "per_image", "eventnerf")
+
+
+def correction_mode(value: bool | str) -> str:
+    """A colour-correction setting as one of :data:`CORRECTIONS` (``True`` is
+    ``per_image``, ``False`` ``none``)."""
+    if isinstance(value, bool):
+        return "per_image" if value else "none"
+    if value not in CORRECTIONS:
+        raise InputError("evaluation", "color_correct", f"one of {', '.join(CORRECTIONS)}", value)
+    return value
+
+
 def evaluate_images(
     preds: ArrayLike,
     gts: ArrayLike,
-    lpips: bool = True,
-    color_correct: bool = False,
+    lpips: bool | tuple[str, ...] = True,
+    color_correct: bool | str = "none",
     device: torch.device | str | None = None,
 ) -> dict[str, Any]:
     """Mean PSNR / SSIM / LPIPS over frames ``[N,H,W,3]`` (or one ``[H,W,3]`` image).
 
-    Returns ``{"psnr", "ssim", "lpips", "lpips_note", "n_frames", "color_corrected"}``.
-    ``lpips`` is ``None`` (with a one-line ``lpips_note`` and a logged warning) when the
-    network's weights cannot be had or ``lpips=False`` was asked; never a made-up 0
-    (the warning is logged once per distinct reason).
-    With ``color_correct=True`` every prediction is first fitted to its ground truth
-    (:func:`color_correct`); the metrics then measure structure, not tone.
+    Returns ``{"psnr", "ssim", "lpips", "lpips_note", "lpips_vgg", "lpips_vgg_note",
+    "n_frames", "color_corrected"}``. ``lpips``: ``True`` for both networks, ``False``
+    for none, or the names of those to compute (``("alex",)``). A network's value is
+    ``None`` (with a one-line note and a logged warning) when its weights cannot be had
+    or it was not asked for; never a made-up 0 (the warning is logged once per reason).
+    ``color_correct`` (:data:`CORRECTIONS`) fits the predictions to the ground truth first,
+    per image (:func:`color_correct`) or jointly (:func:`color_correct_joint`); the
+    metrics then measure structure more than tone. ``color_corrected`` names the mode.
 
     >>> import numpy as np
     >>> rng = np.random.default_rng(0)
     >>> gt = rng.random((2, 16, 16, 3)); out = evaluate_images(gt, gt, lpips=False)
     >>> out["psnr"], out["ssim"], out["lpips"], out["lpips_note"]
-    (inf, 1.0, None, 'LPIPS not requested')
+    (inf, 1.0, None, 'LPIPS-Alex not requested')
     """
     p, g = _pair(preds, gts)
     if device is None and isinstance(preds, torch.Tensor):
         device = preds.device
-    if color_correct:
+    mode = correction_mode(color_correct)
+    if mode == "per_image":
         p = _color_correct_fn(p, g)
+    elif mode == "eventnerf":
+        p = color_correct_joint(p, g)
     result: dict[str, Any] = {
         "psnr": psnr(p, g),
         "ssim": ssim(p, g),
-        "lpips": None,
-        "lpips_note": "LPIPS not requested",
         "n_frames": int(len(p)),
-        "color_corrected": bool(color_correct),
+        "color_corrected": mode,
     }
-    if lpips:
+    nets = tuple(NETS) if lpips is True else tuple(lpips or ())
+    for net, key in LPIPS_KEYS.items():
+        result[key], result[f"{key}_note"] = None, f"{NETS[net].label} not requested"
+        if net not in nets:
+            continue
         try:
-            result["lpips"] = _lpips_fn(p, g, device=device)
-            result["lpips_note"] = None
+            result[key] = _lpips_fn(p, g, device=device, net=net)
+            result[f"{key}_note"] = None
         except LPIPSUnavailable as exc:
-            note = str(exc).splitlines()[0] if str(exc) else "LPIPS unavailable"
+            note = str(exc).splitlines()[0] if str(exc) else f"{NETS[net].label} unavailable"
             if note not in _WARNED:  # once per reason, not at every evaluation
                 _WARNED.add(note)
                 log.warning("LPIPS unavailable: %s", note)
-            result["lpips_note"] = note
+            result[f"{key}_note"] = note
     if math.isinf(result["psnr"]):
         log.debug("PSNR is infinite: predictions equal the ground truth")
     return result

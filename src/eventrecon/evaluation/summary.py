@@ -2,14 +2,16 @@
 where to look next.
 
 >>> m = {"scene": "spheres", "model": "nerf", "loss": "full", "seed": 0, "status": "ok",
-...      "psnr": 24.86, "ssim": 0.873, "lpips": None, "lpips_note": "no AlexNet weights",
+...      "psnr": 24.86, "ssim": 0.873, "lpips": 0.1234, "lpips_vgg": None,
+...      "lpips_vgg_note": "no VGG16 weights",
 ...      "psnr_background": 21.42, "steps": 2500, "wall_s": 270.0, "sec_per_it": 0.108,
 ...      "total_s": 333.0, "peak_mem_mb": 1200.0}
 >>> print(format_summary(m, "outputs/run"))  # doctest: +NORMALIZE_WHITESPACE
 run summary — spheres · nerf · full · seed 0
   held-out PSNR   24.86 dB   (empty field 21.42 dB: +3.44 dB)
   SSIM            0.8730
-  LPIPS           n/a (no AlexNet weights)
+  LPIPS-Alex      0.1234
+  LPIPS-VGG       n/a (no VGG16 weights)
   status          ok
   training        2500 steps in 4m30s (0.108 s/it); 5m33s in all
   peak memory     1.2 GB
@@ -44,8 +46,8 @@ def format_summary(metrics: Mapping[str, Any], out_dir: str | Path) -> str:
     gain = ""
     if isinstance(psnr, (int, float)) and isinstance(empty, (int, float)):
         gain = f"   (empty field {empty:.2f} dB: {psnr - empty:+.2f} dB)"
-    lpips = metrics.get("lpips")
-    lp = _num(lpips, ".4f") if lpips is not None else f"n/a ({metrics.get('lpips_note')})"
+    lp = {key: _num(metrics[key], ".4f") if metrics.get(key) is not None
+          else f"n/a ({metrics.get(key + '_note')})" for key in ("lpips", "lpips_vgg")}
     status = str(metrics.get("status"))
     if status == "collapsed":
         status = f"COLLAPSED — renders the empty field ({metrics.get('collapse_reason')})"
@@ -70,7 +72,8 @@ def format_summary(metrics: Mapping[str, Any], out_dir: str | Path) -> str:
                             f"{metrics.get('gain_psnr_subject', float('nan')):+.2f} dB)")]
           if isinstance(subject, (int, float)) else []),
         ("SSIM", _num(metrics.get("ssim"), ".4f")),
-        ("LPIPS", lp),
+        ("LPIPS-Alex", lp["lpips"]),
+        ("LPIPS-VGG", lp["lpips_vgg"]),
         ("status", status),
         ("training", f"{metrics.get('steps')} steps in "
                      f"{format_seconds(float(metrics.get('wall_s') or 0))} "

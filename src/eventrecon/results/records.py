@@ -6,7 +6,8 @@ A run folder holds
   views, fps, status``; optionally ``experiment``, ``tag``, ``seed``, ``method_version``
   (:data:`METHOD_VERSION`; a record without one is version 1), and what it changed
   from the paper's method: ``schedule``, ``skip``, ``sizing``) and, once
-  evaluated, ``psnr, ssim, lpips`` (``lpips`` may be null with an ``lpips_note``),
+  evaluated, ``psnr, ssim, lpips`` (LPIPS-Alex), ``lpips_vgg`` (each may be null with a
+  ``<key>_note``),
   ``psnr_background`` (the empty field's score on the same frames), ``wall_s``,
   ``steps``, ``sec_per_it``, ``peak_mem_mb``, ``total_s``, ``machine``
   (:mod:`eventrecon.results.machine`). ``status`` is one of
@@ -104,8 +105,9 @@ STATUSES: tuple[str, ...] = ("ok", "collapsed", "failed")
 #: Statuses of a run that trained and was evaluated (a sweep does not run it again).
 FINISHED: tuple[str, ...] = ("ok", "collapsed")
 #: Keys written as ``null`` when a record does not have them (the report reads them).
-OPTIONAL_KEYS: tuple[str, ...] = ("psnr", "ssim", "lpips", "lpips_note", "wall_s", "steps",
-                                  "sec_per_it", "peak_mem_mb", "error")
+OPTIONAL_KEYS: tuple[str, ...] = ("psnr", "ssim", "lpips", "lpips_note", "lpips_vgg",
+                                  "lpips_vgg_note", "wall_s", "steps", "sec_per_it",
+                                  "peak_mem_mb", "error")
 
 
 # ---------------------------------------------------------------------------- metrics.json
