@@ -100,7 +100,7 @@ def test_summary_names_the_result_its_cost_and_where_to_look():
     text = format_summary(m, "outputs/sword/run")
     assert text.splitlines()[0] == "run summary — sword · nerf · full · seed 1"
     assert "COLLAPSED — renders the empty field (segment 0" in text
-    assert "(empty field 26.20 dB: +0.00 dB)" in text and "LPIPS           n/a (no weights)" in text
+    assert "(empty field 26.20 dB: +0.00 dB)" in text and "LPIPS-Alex      n/a (no weights)" in text
     assert "1000 steps in 1m01s (0.061 s/it); 1m30s in all" in text and "0.8 GB" in text
     assert "schedules compressed; size conf/sizing/cpu_nerf.yaml; empty-space skipping" in text
     assert "outputs/sword/run/renders/" in text and "make tensorboard" in text
