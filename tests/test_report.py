@@ -91,17 +91,17 @@ def test_table3_layout_paper_numbers_ours_and_deltas(table3_sweep):
         rows = groups[title]
         assert list(rows) == list(paper.rows)  # every row, in the paper's order
         for row in paper.rows:
-            for m, metric in enumerate(("PSNR↑", "SSIM↑", "LPIPS↓")):
+            for m, metric in enumerate(("PSNR↑", "SSIM↑", "LPIPS-Alex↓")):
                 want = f"{paper.value(row, col)[m]:.3f}" if col else "—"
                 assert rows[row][f"{metric} paper"] == want
     sph, blk, avg = groups[titles[2]], groups[titles[5]], groups[titles[6]]
     # ours and Δ where given
     assert sph["Full Model"]["PSNR↑ ours"] == "30.000"
     assert sph["Full Model"]["PSNR↑ Δ"] == f"{30.0 - 29.765:+.3f}" == "+0.235"
-    assert sph["Full Model"]["LPIPS↓ Δ"] == f"{0.08 - 0.081:+.3f}"
+    assert sph["Full Model"]["LPIPS-Alex↓ Δ"] == f"{0.08 - 0.081:+.3f}"
     assert sph["w/o L_event"]["SSIM↑ ours"] == "0.910"
-    assert sph["w/o L_event"]["LPIPS↓ ours"] == "n/a"
-    assert sph["w/o L_event"]["LPIPS↓ Δ"] == "—"
+    assert sph["w/o L_event"]["LPIPS-Alex↓ ours"] == "n/a"
+    assert sph["w/o L_event"]["LPIPS-Alex↓ Δ"] == "—"
     assert sph["NGP"]["PSNR↑ ours"] == "failed" and sph["NGP"]["PSNR↑ Δ"] == "—"
     assert sph["TensoRF-CP"]["PSNR↑ ours"] == "—"
     assert blk["HexPlane"]["PSNR↑ ours"] == "22.500" and blk["HexPlane"]["PSNR↑ Δ"] == "—"
@@ -112,7 +112,7 @@ def test_table3_layout_paper_numbers_ours_and_deltas(table3_sweep):
     assert avg["Full Model"]["PSNR↑ Δ"] == f"{28.0 - 27.097:+.3f}"
     assert avg["Full Model"]["SSIM↑ ours"] == "0.910"
     assert avg["HexPlane"]["PSNR↑ ours"] == "22.500"  # only `blocks` has a value
-    assert avg["w/o L_event"]["LPIPS↓ ours"] == "n/a"  # no LPIPS anywhere in that row
+    assert avg["w/o L_event"]["LPIPS-Alex↓ ours"] == "n/a"  # no LPIPS anywhere in that row
     assert avg["NGP"]["PSNR↑ ours"] == "—"  # failed runs are not averaged
     assert "mean over the columns with a value" in md
     tex = to_latex(build_table("table3", runs))

@@ -49,7 +49,7 @@ def test_table3_smoke_sweep_fills_every_row_and_column(table3_sweep: Path):
         assert list(groups[title]) == list(paper.rows), title
         for row in paper.rows:
             cells = groups[title][row]
-            for m, metric in enumerate(("PSNR↑", "SSIM↑", "LPIPS↓")):
+            for m, metric in enumerate(("PSNR↑", "SSIM↑", "LPIPS-Alex↓")):
                 want = f"{paper.value(row, col)[m]:.3f}" if col else "—"
                 assert cells[f"{metric} paper"] == want, (title, row, metric)
     # Spheres <- spheres, Static Lego <- static_lego, then Average

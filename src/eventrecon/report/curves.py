@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 
 #: PSNR levels (dB) of the time-to-quality table.
 DEFAULT_LEVELS: tuple[float, ...] = (15.0, 20.0, 25.0, 30.0)
-_METRICS = (("psnr", "PSNR [dB] ↑"), ("ssim", "SSIM ↑"), ("lpips", "LPIPS ↓"))
+_METRICS = (("psnr", "PSNR [dB] ↑"), ("ssim", "SSIM ↑"), ("lpips", "LPIPS-Alex ↓"))
 
 
 def trailing_median(psnr: np.ndarray, window: int = 5) -> np.ndarray:

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 #: Metric keys (as in metrics.json) and their display names.
-METRIC_LABELS: dict[str, str] = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips": "LPIPS↓"}
+METRIC_LABELS: dict[str, str] = {"psnr": "PSNR↑", "ssim": "SSIM↑", "lpips": "LPIPS-Alex↓"}
 
 
 @dataclass(frozen=True)
