@@ -145,9 +145,15 @@ def test_equals_lpips_package_with_the_trained_weights(reference_lpips, net):
     package = torch.load(lpips_heads_path(net), map_location="cpu", weights_only=True)
     if net == "alex":
         assert all(torch.equal(jax_heads[k], package[k]) for k in jax_heads)
-    # the first convolution is a trained one: far from a random init's scale
-    w0 = ours.net.features[0].weight
-    assert float(w0.std()) < 0.5 * (2.0 / w0[0].numel()) ** 0.5 or float(w0.abs().max()) > 0.1
+    # the Flax kernel [kh, kw, in, out] is the torch weight [out, in, kh, kw], element for
+    # element, for the first and the last convolution
+    params = load_arrays(lp._jax_weights_path(NETS[net]))[NETS[net].jax_trunk]
+    last = len(NETS[net].convs) - 1
+    for i in (0, last):
+        kernel = params[f"Conv_{i}"]["kernel"]
+        weight = ours.net.features[NETS[net].convs[i]].weight
+        assert weight.shape == (kernel.shape[3], kernel.shape[2], *kernel.shape[:2])
+        assert float(weight[1, 2, 0, 1]) == float(kernel[0, 1, 2, 1])
 
 
 @needs_jax

